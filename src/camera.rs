@@ -1,0 +1,1 @@
+//! Camera model (being built under issue 2).

@@ -1,0 +1,30 @@
+//! # cubecal — camera calibration station
+//!
+//! cubecal points a camera at a calibration rig (checkerboards on orthogonal faces of a cube, an inside
+//! corner, or a flat board), finds the corners, solves the camera's intrinsics, extrinsics and lens
+//! distortion, judges the result and writes a profile for that exact camera.
+//!
+//! ## Conventions (stated once, used everywhere)
+//! - **Pixels**: integer pixel coordinates are pixel *centres*, as in OpenCV. The top-left pixel covers
+//!   `[-0.5, 0.5) × [-0.5, 0.5)`; `u` grows to the right (column), `v` grows down (row).
+//! - **Camera frame**: x right, y down, z forward (along the optical axis). A point is in front of the
+//!   camera when `z > 0`.
+//! - **Units**: rig and 3D coordinates in millimetres; pixels for image quantities; angles in radians
+//!   inside the maths and degrees at user-facing boundaries (turntable, CLI), with the unit in the name.
+//! - **Transforms** are named `b_from_a`: `cam_from_rig` maps a rig point into the camera frame,
+//!   `X_cam = R · X_rig + t`. This is OpenCV's `rvec/tvec` and the seed's `[R | t]`.
+//! - **Projection**: `u = fx·x'' + skew·y'' + cx`, `v = fy·y'' + cy`, where `(x'', y'')` are the
+//!   distorted normalised coordinates of the Brown–Conrady model in OpenCV's coefficient order
+//!   `(k1, k2, p1, p2, k3, k4, k5, k6)`. A profile therefore means the same thing in OpenCV.
+//!
+//! ## Modules
+//! - [`camera`]: camera model — K, distortion models, project/unproject.
+//! - [`calib`]: solvers — normalized DLT, RQ, homographies, Zhang, Levenberg–Marquardt, uncertainty.
+//! - [`turntable`]: the `Turntable` trait, serial drivers and simulators.
+//! - [`exit`]: the process exit codes (an API).
+
+pub mod calib;
+pub mod camera;
+pub mod exit;
+pub mod observations;
+pub mod turntable;
