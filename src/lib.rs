@@ -27,4 +27,5 @@ pub mod calib;
 pub mod camera;
 pub mod exit;
 pub mod observations;
+pub mod synthetic;
 pub mod turntable;

@@ -1,0 +1,207 @@
+//! Initialisation of a calibration problem, before refinement:
+//! - a view whose rig points span 3D (≥ 6 points) → normalised DLT + RQ gives a `K` and a pose;
+//! - a planar view (a flat board, or one face of a cube) → a homography;
+//! - shared `K`: the per-component median over the 3D views; with planar views only, Zhang's closed
+//!   form (≥ 2 views), falling back to a focal length from each homography with the principal point at
+//!   the image centre (one view, or views too alike for Zhang);
+//! - poses are then re-estimated with the shared `K` (from `P` or from the homography).
+//!
+//! Distortion starts at zero: the refinement estimates it.
+
+use nalgebra::{Matrix3, Matrix3x4, Vector2, Vector3};
+use tracing::debug;
+
+use super::linear::{
+    COPLANAR_TOLERANCE, decompose_projection, dlt, focal_from_homography, homography, plane_frame,
+    pose_from_homography, pose_from_projection, relative_thickness, zhang_intrinsics,
+};
+use super::{CalibError, View};
+use crate::camera::{Camera, DistortionModel, Pose};
+
+/// How the initial intrinsics were obtained.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InitMethod {
+    /// DLT + RQ on views of a 3D rig, K shared by median.
+    Dlt,
+    /// Zhang's closed form on planar homographies.
+    Zhang,
+    /// One focal length per homography, principal point at the image centre.
+    PlanarFocal,
+}
+
+/// Initial camera and poses for the refinement.
+#[derive(Debug, Clone)]
+pub struct Initial {
+    pub camera: Camera,
+    pub poses: Vec<Pose>,
+    pub method: InitMethod,
+}
+
+enum ViewInit {
+    Projective(Matrix3x4<f64>),
+    Planar {
+        h: Matrix3<f64>,
+        plane_from_rig: Pose,
+    },
+}
+
+/// The image centre in the pixel-centre convention: `((w − 1)/2, (h − 1)/2)`.
+pub fn image_centre(image_size: [u32; 2]) -> Vector2<f64> {
+    Vector2::new(
+        0.5 * (f64::from(image_size[0]) - 1.0),
+        0.5 * (f64::from(image_size[1]) - 1.0),
+    )
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        f64::NAN
+    } else if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// Initial intrinsics (distortion zero, model as given) and per-view `cam_from_rig`.
+pub fn initialise(
+    views: &[View],
+    image_size: [u32; 2],
+    model: DistortionModel,
+) -> Result<Initial, CalibError> {
+    let mut inits = Vec::with_capacity(views.len());
+    let mut ks = Vec::new();
+    for v in views {
+        let x3: Vec<Vector3<f64>> = v.points.iter().map(|c| c.xyz).collect();
+        let x2: Vec<Vector2<f64>> = v.points.iter().map(|c| c.uv).collect();
+        let init = if relative_thickness(&x3) >= COPLANAR_TOLERANCE {
+            let p = dlt(&x3, &x2).map_err(|e| e.in_view(&v.name))?;
+            let (k, _) = decompose_projection(&p).map_err(|e| e.in_view(&v.name))?;
+            ks.push(k);
+            ViewInit::Projective(p)
+        } else {
+            let plane_from_rig = plane_frame(&x3);
+            let plane: Vec<Vector2<f64>> = x3
+                .iter()
+                .map(|p| {
+                    let q = plane_from_rig.transform(p);
+                    Vector2::new(q.x, q.y)
+                })
+                .collect();
+            let h = homography(&plane, &x2).map_err(|e| e.in_view(&v.name))?;
+            ViewInit::Planar { h, plane_from_rig }
+        };
+        inits.push(init);
+    }
+
+    let centre = image_centre(image_size);
+    let (k, method) = if !ks.is_empty() {
+        let k = Matrix3::new(
+            median(ks.iter().map(|k| k[(0, 0)]).collect()),
+            0.0,
+            median(ks.iter().map(|k| k[(0, 2)]).collect()),
+            0.0,
+            median(ks.iter().map(|k| k[(1, 1)]).collect()),
+            median(ks.iter().map(|k| k[(1, 2)]).collect()),
+            0.0,
+            0.0,
+            1.0,
+        );
+        (k, InitMethod::Dlt)
+    } else {
+        let hs: Vec<Matrix3<f64>> = inits
+            .iter()
+            .filter_map(|i| match i {
+                ViewInit::Planar { h, .. } => Some(*h),
+                ViewInit::Projective(_) => None,
+            })
+            .collect();
+        let zhang = if hs.len() >= 2 {
+            zhang_intrinsics(&hs, image_size).ok().filter(|k| {
+                // Reject closed-form answers far outside the image (a sign of near-degenerate views).
+                let w = f64::from(image_size[0]);
+                let h = f64::from(image_size[1]);
+                k[(0, 2)] > -0.25 * w
+                    && k[(0, 2)] < 1.25 * w
+                    && k[(1, 2)] > -0.25 * h
+                    && k[(1, 2)] < 1.25 * h
+            })
+        } else {
+            None
+        };
+        match zhang {
+            Some(k) => (k, InitMethod::Zhang),
+            None => {
+                let fs: Vec<f64> = hs
+                    .iter()
+                    .filter_map(|h| focal_from_homography(h, centre.x, centre.y))
+                    .collect();
+                if fs.is_empty() {
+                    return Err(CalibError::Degenerate {
+                        reason: "no focal length can be estimated: every planar view is fronto-parallel; tilt the board"
+                            .into(),
+                    });
+                }
+                let f = median(fs);
+                (
+                    Matrix3::new(f, 0.0, centre.x, 0.0, f, centre.y, 0.0, 0.0, 1.0),
+                    InitMethod::PlanarFocal,
+                )
+            }
+        }
+    };
+    if !(k[(0, 0)] > 0.0 && k[(1, 1)] > 0.0 && k.iter().all(|x| x.is_finite())) {
+        return Err(CalibError::Degenerate {
+            reason: format!("initial camera matrix is invalid: {k}"),
+        });
+    }
+    debug!(
+        ?method,
+        fx = k[(0, 0)],
+        fy = k[(1, 1)],
+        cx = k[(0, 2)],
+        cy = k[(1, 2)],
+        "initial intrinsics"
+    );
+
+    let mut poses = Vec::with_capacity(views.len());
+    for (v, init) in views.iter().zip(&inits) {
+        let pose = match init {
+            ViewInit::Projective(p) => pose_from_projection(p, &k),
+            ViewInit::Planar { h, plane_from_rig } => pose_from_homography(h, &k)
+                .map(|cam_from_plane| cam_from_plane.compose(plane_from_rig)),
+        }
+        .map_err(|e| e.in_view(&v.name))?;
+        let behind = v
+            .points
+            .iter()
+            .filter(|c| pose.transform(&c.xyz).z <= 0.0)
+            .count();
+        if behind == v.points.len() && matches!(init, ViewInit::Projective(_)) {
+            // det(M) > 0 and every point behind the camera: only a mirrored (left-handed) rig frame
+            // projects like this.
+            return Err(CalibError::LeftHandedRig.in_view(&v.name));
+        }
+        if let Some(i) = v
+            .points
+            .iter()
+            .position(|c| pose.transform(&c.xyz).z <= 0.0)
+        {
+            return Err(CalibError::Degenerate {
+                reason: format!("initial pose puts point {i} behind the camera"),
+            }
+            .in_view(&v.name));
+        }
+        poses.push(pose);
+    }
+    let camera = Camera::pinhole(image_size, k[(0, 0)], k[(1, 1)], k[(0, 2)], k[(1, 2)])
+        .with_distortion(model, &[]);
+    Ok(Initial {
+        camera,
+        poses,
+        method,
+    })
+}

@@ -1,0 +1,168 @@
+//! The solvers: normalised DLT, RQ decomposition, planar homographies and Zhang's closed form
+//! ([`linear`]), initialisation of a multi-view problem ([`init`]), and Levenberg–Marquardt refinement
+//! with parameter uncertainty ([`solve()`]).
+//!
+//! Hand-written rather than taken from a crate: the refinement needs the block (Schur complement)
+//! structure of a calibration problem, the exact OpenCV distortion model with analytic Jacobians, parameter
+//! tying (aspect ratio) and the marginal covariance of the intrinsics; generic least-squares crates
+//! (`levenberg-marquardt`, `argmin`) offer dense normal equations over an opaque parameter vector only.
+
+use nalgebra::{Vector2, Vector3};
+use serde::Serialize;
+
+pub mod init;
+pub mod linear;
+mod lm;
+
+pub use lm::{Calibration, Fix, Loss, SolveOptions, Termination, ViewResult, solve, solve_from};
+
+/// One 2D–3D correspondence: a rig point (mm) and where it was seen (pixels, centre convention).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Correspondence {
+    pub xyz: Vector3<f64>,
+    pub uv: Vector2<f64>,
+}
+
+/// All correspondences seen in one image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct View {
+    pub name: String,
+    pub points: Vec<Correspondence>,
+}
+
+/// Errors from the solvers. Each says what was wrong and, where there is one, what to do about it.
+#[derive(Debug, Clone, PartialEq, thiserror::Error, Serialize)]
+pub enum CalibError {
+    #[error("too few points: {got} given, at least {need} needed")]
+    TooFewPoints { got: usize, need: usize },
+    #[error("too few views: {got} given, at least {need} needed")]
+    TooFewViews { got: usize, need: usize },
+    #[error("{what} {index} is not finite (NaN or infinite)")]
+    NonFinite { what: String, index: usize },
+    #[error(
+        "all 3D points are coplanar (relative thickness {thickness:.2e}): the 3D DLT cannot solve this; use the planar (homography) path"
+    )]
+    Coplanar { thickness: f64 },
+    #[error(
+        "the linear system is rank-deficient (singular value ratio {ratio:.2e}): the points do not determine a unique solution"
+    )]
+    RankDeficient { ratio: f64 },
+    #[error("SVD did not converge within {iterations} iterations")]
+    SvdNotConverged { iterations: usize },
+    #[error("degenerate problem: {reason}")]
+    Degenerate { reason: String },
+    #[error("view '{view}': {source}")]
+    InView {
+        view: String,
+        #[source]
+        source: Box<CalibError>,
+    },
+    #[error("view '{view}': point {index} duplicates point {first} (same 3D position)")]
+    DuplicatePoint {
+        view: String,
+        index: usize,
+        first: usize,
+    },
+    #[error("view '{view}' has no points")]
+    EmptyView { view: String },
+    #[error("no views given")]
+    NoViews,
+    #[error(
+        "the rig coordinates are left-handed (a mirror image of any real camera view): negate one axis of the 3D points"
+    )]
+    LeftHandedRig,
+    #[error(
+        "parameters are not determined by these views ({reason}): add views at other orientations or fix parameters"
+    )]
+    Unobservable { reason: String },
+    #[error("invalid option: {reason}")]
+    InvalidOption { reason: String },
+}
+
+impl CalibError {
+    /// The process exit code for this error (see [`crate::exit`]).
+    pub fn exit_code(&self) -> u8 {
+        use crate::exit;
+        match self {
+            CalibError::TooFewPoints { .. }
+            | CalibError::TooFewViews { .. }
+            | CalibError::NonFinite { .. }
+            | CalibError::Coplanar { .. }
+            | CalibError::DuplicatePoint { .. }
+            | CalibError::EmptyView { .. }
+            | CalibError::NoViews
+            | CalibError::LeftHandedRig
+            | CalibError::InvalidOption { .. } => exit::BAD_INPUT,
+            CalibError::RankDeficient { .. }
+            | CalibError::SvdNotConverged { .. }
+            | CalibError::Degenerate { .. }
+            | CalibError::Unobservable { .. } => exit::CALIBRATION_FAILED,
+            CalibError::InView { source, .. } => source.exit_code(),
+        }
+    }
+
+    pub(crate) fn in_view(self, view: &str) -> CalibError {
+        match self {
+            e @ (CalibError::InView { .. }
+            | CalibError::DuplicatePoint { .. }
+            | CalibError::EmptyView { .. }) => e,
+            e => CalibError::InView {
+                view: view.to_string(),
+                source: Box::new(e),
+            },
+        }
+    }
+}
+
+/// Check views for the problems every solver must refuse: no views, empty views, non-finite values and
+/// duplicated 3D points within a view.
+pub fn validate_views(views: &[View]) -> Result<(), CalibError> {
+    if views.is_empty() {
+        return Err(CalibError::NoViews);
+    }
+    for v in views {
+        if v.points.is_empty() {
+            return Err(CalibError::EmptyView {
+                view: v.name.clone(),
+            });
+        }
+        for (i, c) in v.points.iter().enumerate() {
+            if !c.xyz.iter().all(|x| x.is_finite()) {
+                return Err(CalibError::NonFinite {
+                    what: "3D point".into(),
+                    index: i,
+                }
+                .in_view(&v.name));
+            }
+            if !c.uv.iter().all(|x| x.is_finite()) {
+                return Err(CalibError::NonFinite {
+                    what: "image point".into(),
+                    index: i,
+                }
+                .in_view(&v.name));
+            }
+        }
+        let mut order: Vec<usize> = (0..v.points.len()).collect();
+        let key = |i: usize| {
+            let p = v.points[i].xyz;
+            (p.x, p.y, p.z)
+        };
+        order.sort_by(|&a, &b| {
+            let (ka, kb) = (key(a), key(b));
+            ka.0.total_cmp(&kb.0)
+                .then(ka.1.total_cmp(&kb.1))
+                .then(ka.2.total_cmp(&kb.2))
+                .then(a.cmp(&b))
+        });
+        for w in order.windows(2) {
+            if key(w[0]) == key(w[1]) {
+                return Err(CalibError::DuplicatePoint {
+                    view: v.name.clone(),
+                    index: w[1],
+                    first: w[0],
+                });
+            }
+        }
+    }
+    Ok(())
+}
