@@ -6,7 +6,10 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 use cubecal::exit;
 
+mod capture;
+mod render;
 mod solve;
+mod target;
 mod turntable;
 
 /// cubecal — camera calibration station.
@@ -27,6 +30,15 @@ struct Cli {
 enum Command {
     /// Solve a calibration from a file of 2D–3D correspondences and print it.
     Solve(solve::SolveArgs),
+    /// Render synthetic frames of a rig with exact ground truth.
+    Render(render::RenderArgs),
+    /// Work with rig descriptions (print targets).
+    #[command(subcommand)]
+    Target(target::TargetCommand),
+    /// List the V4L2 capture devices on this machine.
+    Devices(capture::DevicesArgs),
+    /// Record a session of frames from a camera.
+    Record(capture::RecordArgs),
     /// Bring up, drive or simulate a serial turntable.
     #[command(subcommand)]
     Turntable(turntable::TurntableCommand),
@@ -56,6 +68,10 @@ pub fn main() -> ExitCode {
     let out = Output { json: cli.json };
     let result = match cli.command {
         Command::Solve(args) => solve::run(args, out),
+        Command::Render(args) => render::run(args, out),
+        Command::Target(cmd) => target::run(cmd, out),
+        Command::Devices(args) => capture::run_devices(args, out),
+        Command::Record(args) => capture::run_record(args, out),
         Command::Turntable(cmd) => turntable::run(cmd, out),
     };
     match result {
@@ -90,6 +106,12 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::observations::ObservationsError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::target::TargetError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::capture::CaptureError>() {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::turntable::TurntableError>() {

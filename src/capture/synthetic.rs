@@ -1,0 +1,1 @@
+//! Synthetic renderer of rigs (being built under issue 3).
