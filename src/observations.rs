@@ -1,19 +1,203 @@
-//! Observation files (being built under issue 2).
+//! The correspondence file read by `cubecal solve` (and written by the detector):
+//!
+//! ```json
+//! {"image_size": [w, h],
+//!  "views": [{"name": "...", "points": [{"xyz": [x, y, z], "uv": [u, v]}, ...]}]}
+//! ```
+//!
+//! `xyz` are rig coordinates in millimetres, `uv` pixel coordinates with integer values at pixel centres.
+//! Field names are fixed so that other tools can feed cubecal. Unknown fields are ignored (other tools
+//! may add their own); missing or mistyped fields are errors naming the file, line and column.
 
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::calib::{Correspondence, View};
+
+/// Errors reading an observations file.
 #[derive(Debug, thiserror::Error)]
 pub enum ObservationsError {
-    #[error("cannot read {path}")]
+    #[error("cannot read observations file {path}")]
     Read {
-        path: String,
+        path: PathBuf,
         #[source]
         source: std::io::Error,
     },
+    #[error("{path}:{line}:{column}: {message}")]
+    Parse {
+        path: PathBuf,
+        line: usize,
+        column: usize,
+        message: String,
+    },
+    #[error("{path}: {reason}")]
+    Invalid { path: PathBuf, reason: String },
 }
 
 impl ObservationsError {
+    /// The process exit code for this error (see [`crate::exit`]).
     pub fn exit_code(&self) -> u8 {
         match self {
-            ObservationsError::Read { .. } => crate::exit::BAD_INPUT,
+            ObservationsError::Read { .. }
+            | ObservationsError::Parse { .. }
+            | ObservationsError::Invalid { .. } => crate::exit::BAD_INPUT,
         }
+    }
+}
+
+/// One correspondence as stored in the file.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RawPoint {
+    pub xyz: [f64; 3],
+    pub uv: [f64; 2],
+}
+
+/// One view as stored in the file.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RawView {
+    #[serde(default)]
+    pub name: Option<String>,
+    pub points: Vec<RawPoint>,
+}
+
+/// The file as stored.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RawObservations {
+    pub image_size: [u32; 2],
+    pub views: Vec<RawView>,
+}
+
+/// Validated observations.
+#[derive(Debug, Clone)]
+pub struct Observations {
+    pub image_size: [u32; 2],
+    pub views: Vec<View>,
+}
+
+impl Observations {
+    /// Parse and validate from JSON text; `path` is used in messages only.
+    pub fn from_json(text: &str, path: &Path) -> Result<Observations, ObservationsError> {
+        let raw: RawObservations =
+            serde_json::from_str(text).map_err(|e| ObservationsError::Parse {
+                path: path.to_path_buf(),
+                line: e.line(),
+                column: e.column(),
+                message: e.to_string(),
+            })?;
+        Observations::validate(raw, path)
+    }
+
+    /// Read, parse and validate a file.
+    pub fn load(path: &Path) -> Result<Observations, ObservationsError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ObservationsError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Observations::from_json(&text, path)
+    }
+
+    fn validate(raw: RawObservations, path: &Path) -> Result<Observations, ObservationsError> {
+        let invalid = |reason: String| ObservationsError::Invalid {
+            path: path.to_path_buf(),
+            reason,
+        };
+        if raw.image_size[0] == 0 || raw.image_size[1] == 0 {
+            return Err(invalid(format!(
+                "image_size: must be positive, got [{}, {}]",
+                raw.image_size[0], raw.image_size[1]
+            )));
+        }
+        if raw.views.is_empty() {
+            return Err(invalid("views: no views given".into()));
+        }
+        let mut views = Vec::with_capacity(raw.views.len());
+        for (i, v) in raw.views.into_iter().enumerate() {
+            let name = v.name.unwrap_or_else(|| format!("view{i}"));
+            if v.points.is_empty() {
+                return Err(invalid(format!("views[{i}] ('{name}').points: empty")));
+            }
+            let mut points = Vec::with_capacity(v.points.len());
+            for (j, p) in v.points.into_iter().enumerate() {
+                if !p.xyz.iter().chain(&p.uv).all(|x| x.is_finite()) {
+                    return Err(invalid(format!(
+                        "views[{i}] ('{name}').points[{j}]: value is not finite"
+                    )));
+                }
+                points.push(Correspondence {
+                    xyz: Vector3::from(p.xyz),
+                    uv: Vector2::from(p.uv),
+                });
+            }
+            views.push(View { name, points });
+        }
+        Ok(Observations {
+            image_size: raw.image_size,
+            views,
+        })
+    }
+
+    /// The stored form, for writing.
+    pub fn to_raw(&self) -> RawObservations {
+        RawObservations {
+            image_size: self.image_size,
+            views: self
+                .views
+                .iter()
+                .map(|v| RawView {
+                    name: Some(v.name.clone()),
+                    points: v
+                        .points
+                        .iter()
+                        .map(|c| RawPoint {
+                            xyz: c.xyz.into(),
+                            uv: c.uv.into(),
+                        })
+                        .collect(),
+                })
+                .collect(),
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> Result<Observations, ObservationsError> {
+        Observations::from_json(text, Path::new("obs.json"))
+    }
+
+    #[test]
+    fn round_trip() {
+        let text = r#"{"image_size": [640, 480], "extra": 1, "views": [{"name": "a", "points": [{"xyz": [1, 2, 3], "uv": [4.5, 5.5]}]}]}"#;
+        let o = parse(text).unwrap();
+        assert_eq!(o.views[0].points[0].uv, Vector2::new(4.5, 5.5));
+        let back = serde_json::to_string(&o.to_raw()).unwrap();
+        let o2 = parse(&back).unwrap();
+        assert_eq!(o2.views, o.views);
+    }
+
+    #[test]
+    fn errors_name_the_problem() {
+        let e = parse(
+            r#"{"image_size": [640, 480], "views": [{"points": [{"xyz": [1, 2], "uv": [4, 5]}]}]}"#,
+        )
+        .unwrap_err();
+        assert!(matches!(e, ObservationsError::Parse { line: 1, .. }), "{e}");
+        let e = parse(r#"{"image_size": [0, 480], "views": []}"#).unwrap_err();
+        assert!(e.to_string().contains("image_size"), "{e}");
+        let e = parse(r#"{"image_size": [10, 10], "views": [{"name": "v", "points": []}]}"#)
+            .unwrap_err();
+        assert!(
+            e.to_string().contains("views[0] ('v').points: empty"),
+            "{e}"
+        );
+        let e = parse("{not json").unwrap_err();
+        assert!(e.to_string().starts_with("obs.json:1:"), "{e}");
+        let e = parse(r#"{"image_size": [10, 10], "views": [{"points": [{"xyz": [1e400, 2, 3], "uv": [4, 5]}]}]}"#).unwrap_err();
+        assert!(matches!(e, ObservationsError::Parse { .. }), "{e}");
     }
 }

@@ -411,13 +411,21 @@ impl Problem<'_> {
                 n.cost += self.loss.rho(s);
                 n.ssr += s * s;
                 n.wssr += wgt * s * s;
-                let j_int_t = j_int.transpose();
-                n.u += (j_int_t * j_int) * wgt;
-                n.w[i] += (j_int_t * j_pose) * wgt;
-                n.v[i] += (j_pose.transpose() * j_pose) * wgt;
-                n.g_c += (j_int_t * r) * wgt;
-                n.g_p[i] += (j_pose.transpose() * r) * wgt;
+                // Rank-2 updates of the lower triangles (symmetrised once at the end).
+                for row in 0..2 {
+                    let a = j_int.row(row).transpose();
+                    let b = j_pose.row(row).transpose();
+                    n.u.syger(wgt, &a, &a, 1.0);
+                    n.v[i].syger(wgt, &b, &b, 1.0);
+                    n.w[i].ger(wgt, &a, &b, 1.0);
+                    n.g_c.axpy(wgt * r[row], &a, 1.0);
+                    n.g_p[i].axpy(wgt * r[row], &b, 1.0);
+                }
             }
+        }
+        n.u.fill_upper_triangle_with_lower_triangle();
+        for v in &mut n.v {
+            v.fill_upper_triangle_with_lower_triangle();
         }
         Ok(n)
     }

@@ -1,0 +1,133 @@
+//! The `cubecal` binary end to end: output formats and documented exit codes.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+fn cubecal(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("run cubecal")
+}
+
+fn write_temp(dir: &tempfile::TempDir, name: &str, text: &str) -> PathBuf {
+    let p = dir.path().join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+#[test]
+fn solve_prints_json_with_the_documented_fields() {
+    let out = cubecal(&[
+        "solve",
+        "fixtures/observations/cube_synthetic.json",
+        "--json",
+    ]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for key in [
+        "image_size",
+        "camera_matrix",
+        "distortion",
+        "std_dev",
+        "rms_px",
+        "views",
+        "iterations",
+        "termination",
+    ] {
+        assert!(v.get(key).is_some(), "missing {key}");
+    }
+    assert_eq!(v["distortion"]["model"], "brown5");
+    assert_eq!(v["distortion"]["coefficients"].as_array().unwrap().len(), 5);
+    let fx = v["camera_matrix"][0][0].as_f64().unwrap();
+    let sd = v["std_dev"]["fx"].as_f64().unwrap();
+    // Ground truth of the fixture: fx = 1002.5 (see fixtures/README.md).
+    assert!((fx - 1002.5).abs() < 3.0 * sd, "fx {fx} ± {sd}");
+    let view = &v["views"][0];
+    for key in ["name", "rotation", "translation", "rms_px", "outliers"] {
+        assert!(view.get(key).is_some(), "view missing {key}");
+    }
+}
+
+#[test]
+fn solve_human_output_and_fix_options() {
+    let out = cubecal(&[
+        "solve",
+        "fixtures/observations/bailus_left.json",
+        "--fix",
+        "tangential,k3",
+    ]);
+    assert_eq!(out.status.code(), Some(0));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("p1 = 0.000000 (fixed)"), "{text}");
+    assert!(text.contains("converged"), "{text}");
+}
+
+#[test]
+fn bad_input_exits_3_with_a_message_naming_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases = [
+        (
+            "malformed.json",
+            "{\"image_size\": [640, 480], \"views\": [",
+            "malformed.json:1:",
+        ),
+        (
+            "empty_views.json",
+            "{\"image_size\": [640, 480], \"views\": []}",
+            "no views",
+        ),
+        (
+            "empty_view.json",
+            "{\"image_size\": [640, 480], \"views\": [{\"name\": \"a\", \"points\": []}]}",
+            "points: empty",
+        ),
+        (
+            "few.json",
+            "{\"image_size\": [640, 480], \"views\": [{\"name\": \"a\", \"points\": [
+              {\"xyz\": [0,0,0], \"uv\": [1,1]}, {\"xyz\": [1,0,0], \"uv\": [2,1]},
+              {\"xyz\": [0,1,0], \"uv\": [1,2]}, {\"xyz\": [0,0,1], \"uv\": [3,3]},
+              {\"xyz\": [1,1,1], \"uv\": [4,4]}]}]}",
+            "at least 6",
+        ),
+        (
+            "dup.json",
+            "{\"image_size\": [640, 480], \"views\": [{\"name\": \"a\", \"points\": [
+              {\"xyz\": [0,0,0], \"uv\": [1,1]}, {\"xyz\": [0,0,0], \"uv\": [2,1]}]}]}",
+            "duplicates",
+        ),
+    ];
+    for (name, text, needle) in cases {
+        let p = write_temp(&dir, name, text);
+        let out = cubecal(&["solve", p.to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(3), "{name}: {err}");
+        assert!(err.contains(needle), "{name}: {err}");
+        assert!(!err.contains("panicked"), "{name}: {err}");
+    }
+    let out = cubecal(&["solve", "/nonexistent/obs.json"]);
+    assert_eq!(out.status.code(), Some(3));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/obs.json"));
+    // JSON error report on stdout with --json.
+    let p = write_temp(&dir, "m2.json", "[");
+    let out = cubecal(&["solve", p.to_str().unwrap(), "--json"]);
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["exit_code"], 3);
+}
+
+#[test]
+fn usage_errors_exit_2() {
+    let out = cubecal(&["solve"]);
+    assert_eq!(out.status.code(), Some(2));
+    let out = cubecal(&["solve", "x.json", "--model", "fisheye"]);
+    assert_eq!(out.status.code(), Some(2));
+    let out = cubecal(&["--help"]);
+    assert_eq!(out.status.code(), Some(0));
+}
