@@ -404,3 +404,17 @@ fn bailus_dlt_leaves_pixels_refinement_reaches_labelling_noise() {
         );
     }
 }
+
+#[test]
+fn non_convergence_is_reported_not_hidden() {
+    let truth = reference_camera();
+    let sc = cube_scenario(&truth, 200.0, 6, 31);
+    let noisy = add_noise(&sc.views, 0.3, 32);
+    let opts = SolveOptions {
+        max_iterations: 1,
+        ..SolveOptions::default()
+    };
+    let cal = calib::solve(&noisy, truth.image_size, &opts).unwrap();
+    assert_eq!(cal.termination, calib::Termination::MaxIterations);
+    assert!(!cal.termination.is_converged());
+}

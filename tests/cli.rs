@@ -123,6 +123,18 @@ fn bad_input_exits_3_with_a_message_naming_the_file() {
 }
 
 #[test]
+fn non_convergence_exits_5_and_says_so() {
+    let out = cubecal(&[
+        "solve",
+        "fixtures/observations/cube_synthetic.json",
+        "--max-iterations",
+        "1",
+    ]);
+    assert_eq!(out.status.code(), Some(5));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("NOT CONVERGED"));
+}
+
+#[test]
 fn usage_errors_exit_2() {
     let out = cubecal(&["solve"]);
     assert_eq!(out.status.code(), Some(2));
