@@ -14,7 +14,7 @@
 //! computed from a QR decomposition of the row-reversed, transposed `M`. `P` is first given the sign that
 //! makes `det M > 0`, so that `det R = +1` and points in front of the camera have positive depth.
 
-use nalgebra::{DMatrix, Matrix3, Matrix3x4, Matrix4, Rotation3, Vector2, Vector3};
+use nalgebra::{DMatrix, Matrix3, Matrix3x4, Matrix4, Rotation3, SVector, Vector2, Vector3};
 
 use super::CalibError;
 use crate::camera::Pose;
@@ -138,6 +138,39 @@ fn null_vector(a: DMatrix<f64>) -> Result<(nalgebra::DVector<f64>, f64), CalibEr
     Ok((v_t.row(smallest).transpose(), ratio))
 }
 
+/// The DLT core shared by the projection matrix and the homography: for normalised homogeneous source
+/// points `X̃` (dimension `D`) and image points normalised by `t`, stack the rows
+/// `[X̃ᵀ, 0ᵀ, −u X̃ᵀ]`, `[0ᵀ, X̃ᵀ, −v X̃ᵀ]` and return the null vector (row-major `3×D` matrix),
+/// refusing a rank-deficient system.
+fn homogeneous_dlt<const D: usize>(
+    src: &[SVector<f64, D>],
+    image: &[Vector2<f64>],
+    t: &Matrix3<f64>,
+) -> Result<nalgebra::DVector<f64>, CalibError> {
+    let mut a = DMatrix::zeros(2 * src.len(), 3 * D);
+    for (i, (xh, x2)) in src.iter().zip(image).enumerate() {
+        let xn = t * x2.push(1.0);
+        let (uu, vv) = (xn.x / xn.z, xn.y / xn.z);
+        for k in 0..D {
+            a[(2 * i, k)] = xh[k];
+            a[(2 * i, 2 * D + k)] = -uu * xh[k];
+            a[(2 * i + 1, D + k)] = xh[k];
+            a[(2 * i + 1, 2 * D + k)] = -vv * xh[k];
+        }
+    }
+    let (v, ratio) = null_vector(a)?;
+    if ratio < RANK_TOLERANCE {
+        return Err(CalibError::RankDeficient { ratio });
+    }
+    Ok(v)
+}
+
+fn invert_normalisation(t: &Matrix3<f64>) -> Result<Matrix3<f64>, CalibError> {
+    t.try_inverse().ok_or(CalibError::Degenerate {
+        reason: "image normalisation not invertible".into(),
+    })
+}
+
 fn check_finite_3d(points3: &[Vector3<f64>], points2: &[Vector2<f64>]) -> Result<(), CalibError> {
     if let Some(i) = points3
         .iter()
@@ -188,27 +221,10 @@ pub fn dlt(
     }
     let t = normalize_2d(points2)?;
     let u = normalize_3d(points3)?;
-    let n = points3.len();
-    let mut a = DMatrix::zeros(2 * n, 12);
-    for (i, (x3, x2)) in points3.iter().zip(points2).enumerate() {
-        let xh = u * x3.push(1.0);
-        let xn = t * x2.push(1.0);
-        let (uu, vv) = (xn.x / xn.z, xn.y / xn.z);
-        for k in 0..4 {
-            a[(2 * i, k)] = xh[k];
-            a[(2 * i, 8 + k)] = -uu * xh[k];
-            a[(2 * i + 1, 4 + k)] = xh[k];
-            a[(2 * i + 1, 8 + k)] = -vv * xh[k];
-        }
-    }
-    let (p, ratio) = null_vector(a)?;
-    if ratio < RANK_TOLERANCE {
-        return Err(CalibError::RankDeficient { ratio });
-    }
+    let src: Vec<SVector<f64, 4>> = points3.iter().map(|x| u * x.push(1.0)).collect();
+    let p = homogeneous_dlt(&src, points2, &t)?;
     let pn = Matrix3x4::from_row_slice(p.as_slice());
-    let t_inv = t.try_inverse().ok_or(CalibError::Degenerate {
-        reason: "image normalisation not invertible".into(),
-    })?;
+    let t_inv = invert_normalisation(&t)?;
     let mut pm = t_inv * pn * u;
     let det = pm.fixed_view::<3, 3>(0, 0).determinant();
     if det < 0.0 {
@@ -288,27 +304,10 @@ pub fn homography(
     }
     let tp = normalize_2d(plane)?;
     let ti = normalize_2d(image)?;
-    let n = plane.len();
-    let mut a = DMatrix::zeros(2 * n, 9);
-    for (i, (xp, xi)) in plane.iter().zip(image).enumerate() {
-        let xh = tp * xp.push(1.0);
-        let xn = ti * xi.push(1.0);
-        let (uu, vv) = (xn.x / xn.z, xn.y / xn.z);
-        for k in 0..3 {
-            a[(2 * i, k)] = xh[k];
-            a[(2 * i, 6 + k)] = -uu * xh[k];
-            a[(2 * i + 1, 3 + k)] = xh[k];
-            a[(2 * i + 1, 6 + k)] = -vv * xh[k];
-        }
-    }
-    let (h, ratio) = null_vector(a)?;
-    if ratio < RANK_TOLERANCE {
-        return Err(CalibError::RankDeficient { ratio });
-    }
+    let src: Vec<SVector<f64, 3>> = plane.iter().map(|x| tp * x.push(1.0)).collect();
+    let h = homogeneous_dlt(&src, image, &ti)?;
     let hn = Matrix3::from_row_slice(h.as_slice());
-    let ti_inv = ti.try_inverse().ok_or(CalibError::Degenerate {
-        reason: "image normalisation not invertible".into(),
-    })?;
+    let ti_inv = invert_normalisation(&ti)?;
     let hm = ti_inv * hn * tp;
     let s = hm[(2, 2)];
     Ok(if s.abs() > 1e-12 {
