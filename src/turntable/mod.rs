@@ -127,7 +127,17 @@ impl fmt::Display for Degrees {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match f.precision() {
             Some(p) => write!(f, "{:.*}°", p, self.0),
-            None => write!(f, "{:.3}°", self.0),
+            None => {
+                // Micro-degree precision without trailing zeros: 90.125°, 0.000234°, 30.0°.
+                let s = format!("{:.6}", self.0);
+                let s = s.trim_end_matches('0');
+                let s = if s.ends_with('.') {
+                    format!("{s}0")
+                } else {
+                    s.to_string()
+                };
+                write!(f, "{s}°")
+            }
         }
     }
 }
@@ -368,6 +378,14 @@ mod tests {
         assert!(Degrees::checked(f64::INFINITY).is_err());
         assert!(Degrees::checked(3600.1).is_err());
         assert_eq!(Degrees::checked(-90.0).ok(), Some(Degrees(-90.0)));
+    }
+
+    #[test]
+    fn degrees_display_keeps_small_steps_visible() {
+        assert_eq!(Degrees(90.0).to_string(), "90.0°");
+        assert_eq!(Degrees(90.125).to_string(), "90.125°");
+        assert_eq!(Degrees(0.000_234_375).to_string(), "0.000234°");
+        assert_eq!(format!("{:.1}", Degrees(29.96)), "30.0°");
     }
 
     #[test]
