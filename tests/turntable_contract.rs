@@ -298,7 +298,7 @@ fn grbl_no_reply_times_out() {
         matches!(err, TurntableError::Timeout { attempts: 1, .. }),
         "{err:?}"
     );
-    assert!(err.to_string().contains("G90 G0 A180.000"), "{err}");
+    assert!(err.to_string().contains("G90 G53 G0 A180.000"), "{err}");
     assert_within(elapsed, EXCHANGE + SLACK, &err);
 }
 

@@ -1,7 +1,7 @@
 //! GRBL 1.1: pure encode/decode of the serial protocol, the GRBL 1.1 error and alarm tables, and
 //! [`GrblTurntable`], a driver generic over a [`Link`].
 //!
-//! Only what a turntable needs: `$X`, `$H`, `$I`, `G90 G0 <axis><value>`, the real-time bytes `?`, `!`,
+//! Only what a turntable needs: `$X`, `$H`, `$I`, `G90 G53 G0 <axis><value>`, the real-time bytes `?`, `!`,
 //! `~` and soft reset `0x18`. See the [module docs](super) for the timeout and retry rules.
 
 use std::time::{Duration, Instant};
@@ -88,10 +88,11 @@ pub fn encode_build_info() -> &'static [u8] {
     b"$I\n"
 }
 
-/// An absolute rapid move of one axis, in machine units, with GRBL's reporting precision.
+/// An absolute rapid move of one axis in *machine* coordinates (`G53`, so work offsets an operator may
+/// have set with `G10`/`G92` do not shift the table's angles), with GRBL's reporting precision.
 pub fn encode_move(axis: Axis, units: f64) -> String {
     format!(
-        "G90 G0 {}{:.*}\n",
+        "G90 G53 G0 {}{:.*}\n",
         axis.letter(),
         REPORT_DECIMALS as usize,
         units
@@ -144,14 +145,15 @@ pub struct Status {
 }
 
 impl Status {
-    /// Work position of `axis` (what `G90` moves address): `WPos`, or `MPos − WCO`.
-    pub fn work_position(&self, axis: Axis, wco: &[f64]) -> Option<f64> {
+    /// Machine position of `axis` (what `G53` moves address): `MPos` (reported by default, `$10=1`),
+    /// or `WPos + WCO` when the controller reports work positions (`$10=0`) and an offset is known.
+    pub fn machine_position(&self, axis: Axis, wco: &[f64]) -> Option<f64> {
         let i = axis.index();
-        if let Some(w) = &self.wpos {
-            return w.get(i).copied();
+        if let Some(m) = &self.mpos {
+            return m.get(i).copied();
         }
-        let m = self.mpos.as_ref()?.get(i).copied()?;
-        Some(m - wco.get(i).copied().unwrap_or(0.0))
+        let w = self.wpos.as_ref()?.get(i).copied()?;
+        Some(w + wco.get(i).copied().unwrap_or(0.0))
     }
 }
 
@@ -429,7 +431,7 @@ impl GrblConfig {
 pub struct GrblTurntable<L> {
     io: LineIo<L>,
     config: GrblConfig,
-    /// Last work coordinate offset seen in a status report.
+    /// Last work coordinate offset seen in a status report (only needed when GRBL reports `WPos`).
     wco: Vec<f64>,
 }
 
@@ -587,7 +589,7 @@ impl<L: Link> GrblTurntable<L> {
     }
 
     fn degrees_of(&self, s: &Status) -> Result<Degrees, TurntableError> {
-        s.work_position(self.config.axis, &self.wco)
+        s.machine_position(self.config.axis, &self.wco)
             .map(|u| Degrees(u * self.config.degrees_per_unit))
             .ok_or_else(|| TurntableError::UnexpectedReply {
                 command: "status query ?".into(),
@@ -763,8 +765,8 @@ mod tests {
 
     #[test]
     fn encodes() {
-        assert_eq!(encode_move(Axis::X, 12.3456), "G90 G0 X12.346\n");
-        assert_eq!(encode_move(Axis::A, -0.0004), "G90 G0 A-0.000\n");
+        assert_eq!(encode_move(Axis::X, 12.3456), "G90 G53 G0 X12.346\n");
+        assert_eq!(encode_move(Axis::A, -0.0004), "G90 G53 G0 A-0.000\n");
         assert_eq!(encode_unlock(), b"$X\n");
         assert_eq!(encode_home(), b"$H\n");
     }
@@ -837,16 +839,22 @@ mod tests {
     }
 
     #[test]
-    fn work_position_subtracts_offset() {
+    fn machine_position_adds_offset_to_work_position() {
         let s = Status {
             state: State::Idle,
             substate: None,
-            mpos: Some(vec![10.0, 0.0, 0.0]),
-            wpos: None,
+            mpos: None,
+            wpos: Some(vec![8.0, 0.0, 0.0]),
             wco: None,
         };
-        assert_eq!(s.work_position(Axis::X, &[2.0, 0.0, 0.0]), Some(8.0));
-        assert_eq!(s.work_position(Axis::A, &[]), None);
+        assert_eq!(s.machine_position(Axis::X, &[2.0, 0.0, 0.0]), Some(10.0));
+        assert_eq!(s.machine_position(Axis::A, &[]), None);
+        let m = Status {
+            mpos: Some(vec![10.0, 0.0, 0.0]),
+            wpos: None,
+            ..s
+        };
+        assert_eq!(m.machine_position(Axis::X, &[2.0, 0.0, 0.0]), Some(10.0));
     }
 
     #[test]

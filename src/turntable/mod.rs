@@ -32,7 +32,10 @@
 //! `error:N` or, asynchronously, `ALARM:N`; [`grbl::error_meaning`] and [`grbl::alarm_meaning`] carry
 //! the GRBL 1.1 tables so an error says what the code means. Homing is `$H` when the machine has homing
 //! switches configured (`GrblConfig::homing`), otherwise `$X` (unlock) and a move to 0. Moves are
-//! `G90 G0 <axis><units>` on a configurable axis (`X`…`C`) with a degrees-per-unit factor. `ok` only
+//! `G90 G53 G0 <axis><units>` on a configurable axis (`X`…`C`) with a degrees-per-unit factor: absolute,
+//! in *machine* coordinates, so angles are read straight from `MPos` (GRBL's default report) and a
+//! work offset left behind by someone's `G92` cannot shift them. 0° is therefore the machine origin;
+//! after `$H` GRBL puts the axis at −pull-off (`$27`), which [`Turntable::home`] reports as it is. `ok` only
 //! means "planned", so the driver then polls the real-time `?` (one byte, no newline; the answer is one
 //! `<State|MPos:…|…>` line and no `ok`) until the state is `Idle` *and* the reported position is within
 //! the resolution of the target. [`Turntable::stop`] sends feed hold `!`, waits for the hold to
@@ -147,7 +150,8 @@ impl fmt::Display for Degrees {
 pub trait Turntable: Send {
     /// Identify the device (firmware, protocol) for logs and bring-up.
     fn describe(&mut self) -> Result<String, TurntableError>;
-    /// Find the reference position and return the settled position afterwards (0° by definition).
+    /// Find the reference position and return the settled position afterwards: 0°, except for GRBL
+    /// with homing switches, which reports where its homing cycle left the axis (−pull-off).
     fn home(&mut self) -> Result<Degrees, TurntableError>;
     /// Move to an absolute angle; return only once the stage reports it has settled, with the settled
     /// position (within [`resolution`](Turntable::resolution) of `target`, otherwise an error).

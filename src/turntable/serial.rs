@@ -278,6 +278,32 @@ mod tests {
     }
 
     #[test]
+    fn open_errors_are_sorted_into_kinds() {
+        use serialport::{Error, ErrorKind};
+        let cases = [
+            (ErrorKind::NoDevice, "busy"),
+            (ErrorKind::Io(io::ErrorKind::NotFound), "does not exist"),
+            (
+                ErrorKind::Io(io::ErrorKind::PermissionDenied),
+                "permission denied",
+            ),
+            (ErrorKind::Unknown, "cannot open"),
+        ];
+        for (kind, says) in cases {
+            let e = classify_open_error("/dev/ttyUSB0", Error::new(kind, "x"));
+            assert!(e.to_string().contains(says), "{e}");
+            assert_eq!(e.exit_code(), crate::exit::DEVICE);
+        }
+        assert!(matches!(
+            classify_open_error(
+                "p",
+                Error::new(ErrorKind::Io(io::ErrorKind::PermissionDenied), "x")
+            ),
+            TurntableError::PermissionDenied { .. }
+        ));
+    }
+
+    #[test]
     fn overlong_garbage_is_returned_as_a_line() {
         let mut io = LineIo::new(Script(vec![vec![b'x'; 200]; 3]));
         let deadline = Instant::now() + Duration::from_millis(50);

@@ -310,7 +310,8 @@ impl FaultState {
 pub struct GrblSim {
     /// The axis the table is on (the report has 3 axes, or as many as needed to include it).
     pub axis: Axis,
-    /// Homing switches configured (`$22=1`): start in Alarm, `$H` works. Otherwise `$H` is `error:5`.
+    /// Homing switches configured (`$22=1`): start in Alarm, `$H` works and ends at machine 0 (as GRBL
+    /// built with `HOMING_FORCE_SET_ORIGIN`). Otherwise `$H` is `error:5`.
     pub homing: bool,
 }
 
@@ -492,6 +493,7 @@ impl GrblMachine {
                 ('G', 90.0) => self.relative = false,
                 ('G', 91.0) => self.relative = true,
                 ('G', 0.0 | 1.0) => motion = true,
+                ('G', 53.0) => {} // machine coordinates: the simulator has no work offsets
                 ('F' | 'N', _) => {}
                 (l, v) if Axis::from_letter(l).is_some_and(|a| a.index() < self.axes) => {
                     if Axis::from_letter(l) == Some(self.grbl.axis) {
