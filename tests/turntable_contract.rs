@@ -494,3 +494,70 @@ fn every_fault_error_maps_to_the_device_exit_code() {
     let (err, _) = fault_run(zaber_with(Some(Fault::NoReply)));
     assert_eq!(err.exit_code(), cubecal::exit::DEVICE);
 }
+
+/// A slow stage (a 90° move takes seconds) with a short move limit: the move must fail with
+/// `MoveTimeout` within the limit, and `stop` must then halt the table where it is.
+fn move_timeout_then_stop(mut t: Box<dyn Turntable>) {
+    t.home().unwrap();
+    let start = Instant::now();
+    let err = t
+        .move_to(Degrees(90.0))
+        .expect_err("too slow for the limit");
+    assert!(matches!(err, TurntableError::MoveTimeout { .. }), "{err:?}");
+    assert_within(start.elapsed(), SHORT_MOVE_LIMIT + SLACK, &err);
+    t.stop().unwrap();
+    let p1 = t.position().unwrap();
+    std::thread::sleep(Duration::from_millis(60));
+    let p2 = t.position().unwrap();
+    assert_eq!(p1, p2, "still moving after stop");
+    assert!(p1.0 > 0.0 && p1.0 < 90.0, "{p1}");
+    // Not locked out: feed hold before the reset means GRBL keeps its position (no ALARM:3).
+    // A short move, so it fits the short limit.
+    let back = Degrees(p1.0 - 0.5);
+    let p3 = t.move_to(back).unwrap();
+    assert!(p3.within(back, tol(&*t)), "{p3}");
+}
+
+const SHORT_MOVE_LIMIT: Duration = Duration::from_millis(200);
+
+#[test]
+fn grbl_move_timeout_then_stop() {
+    let (port, _sim) = sim::grbl_pair(
+        SimConfig {
+            speed: 100.0, // units/s: 90° = 180 units ≈ 1.9 s
+            accel: 1_000.0,
+            fault: None,
+        },
+        GrblSim {
+            axis: Axis::A,
+            homing: false,
+        },
+    )
+    .unwrap();
+    let config = GrblConfig {
+        move_timeout: SHORT_MOVE_LIMIT,
+        ..grbl_config(false)
+    };
+    move_timeout_then_stop(Box::new(GrblTurntable::new(port, config).unwrap()));
+}
+
+#[test]
+fn zaber_move_timeout_then_stop() {
+    let (port, _sim) = sim::zaber_pair(
+        SimConfig {
+            speed: 200_000.0, // microsteps/s: 90° = 384 000 µsteps ≈ 2 s
+            accel: 2_000_000.0,
+            fault: None,
+        },
+        ZaberSim {
+            device: 1,
+            limit_microsteps: 10_000_000,
+        },
+    )
+    .unwrap();
+    let config = ZaberConfig {
+        move_timeout: SHORT_MOVE_LIMIT,
+        ..zaber_config()
+    };
+    move_timeout_then_stop(Box::new(ZaberTurntable::new(port, config).unwrap()));
+}

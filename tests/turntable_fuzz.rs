@@ -44,6 +44,7 @@ fn grbl_driver(chunks: Vec<Vec<u8>>) -> GrblTurntable<Noise> {
         poll_interval: Duration::from_millis(1),
         move_timeout: Duration::from_millis(30),
         home_timeout: Duration::from_millis(30),
+        startup_wait: Duration::from_millis(10),
         ..GrblConfig::new(Axis::X, 1.0)
     };
     GrblTurntable::new(Noise(chunks), config).unwrap()
@@ -184,9 +185,10 @@ proptest! {
     ) {
         let mut t = grbl_driver(chunks);
         let start = Instant::now();
-        // position(): status query bound = exchange × (retries + 1); move: move_timeout.
+        // position(): startup wait, then status query bound = exchange × (retries + 1);
+        // move: move_timeout.
         if let Err(e) = t.position() {
-            assert_bounded(&e, start.elapsed(), EXCHANGE * 2 + Duration::from_millis(50));
+            assert_bounded(&e, start.elapsed(), EXCHANGE * 4 + Duration::from_millis(50));
         }
         let start = Instant::now();
         if let Err(e) = t.move_to(cubecal::turntable::Degrees(10.0)) {

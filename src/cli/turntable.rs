@@ -136,7 +136,7 @@ pub struct SimulateArgs {
     /// Acceleration, degrees per second squared.
     #[arg(long, default_value_t = 60.0)]
     accel_deg_s2: f64,
-    /// Inject a fault on the first move (lost-steps: every move ends 0.5° short... or long).
+    /// Inject a fault on the first move command (lost-steps: every move ends 0.5° past its target).
     #[arg(long, value_enum)]
     fault: Option<FaultArg>,
     #[command(flatten)]

@@ -21,6 +21,10 @@ pub const SOFT_RESET: u8 = 0x18;
 /// Decimal places GRBL reports positions with (in millimetre mode, the default `$13=0`).
 pub const REPORT_DECIMALS: i32 = 3;
 
+/// How long to wait for GRBL to answer its first status query. Opening the USB port of an Arduino
+/// resets it (DTR), and GRBL needs about 1–2 s to boot before it answers anything.
+pub const DEFAULT_STARTUP_WAIT: Duration = Duration::from_secs(3);
+
 /// How many consecutive `Idle` reports away from the target are needed before a move is declared to
 /// have settled in the wrong place (a single early `Idle` can precede the start of motion).
 pub const SETTLE_CONFIRMATIONS: u32 = 3;
@@ -390,6 +394,8 @@ pub struct GrblConfig {
     pub move_timeout: Duration,
     /// Overall limit for homing.
     pub home_timeout: Duration,
+    /// Limit for the first answer after connecting (board boot after the DTR reset).
+    pub startup_wait: Duration,
 }
 
 impl GrblConfig {
@@ -404,6 +410,7 @@ impl GrblConfig {
             poll_interval: super::DEFAULT_POLL_INTERVAL,
             move_timeout: super::DEFAULT_MOVE_TIMEOUT,
             home_timeout: super::DEFAULT_HOME_TIMEOUT,
+            startup_wait: DEFAULT_STARTUP_WAIT,
         }
     }
 
@@ -417,7 +424,8 @@ impl GrblConfig {
         super::nonzero("exchange_timeout", self.exchange_timeout)?;
         super::nonzero("poll_interval", self.poll_interval)?;
         super::nonzero("move_timeout", self.move_timeout)?;
-        super::nonzero("home_timeout", self.home_timeout)
+        super::nonzero("home_timeout", self.home_timeout)?;
+        super::nonzero("startup_wait", self.startup_wait)
     }
 
     /// The position resolution in degrees: one unit of the last reported decimal.
@@ -433,6 +441,8 @@ pub struct GrblTurntable<L> {
     config: GrblConfig,
     /// Last work coordinate offset seen in a status report (only needed when GRBL reports `WPos`).
     wco: Vec<f64>,
+    /// GRBL has answered since we connected.
+    awake: bool,
 }
 
 impl<L: Link> GrblTurntable<L> {
@@ -443,12 +453,55 @@ impl<L: Link> GrblTurntable<L> {
             io: LineIo::new(link),
             config,
             wco: Vec::new(),
+            awake: false,
         })
     }
 
     /// The configuration in use.
     pub fn config(&self) -> &GrblConfig {
         &self.config
+    }
+
+    /// Before the first exchange: poll `?` until GRBL answers (it may be booting after the DTR reset
+    /// that opening an Arduino's port causes), at most `startup_wait`.
+    fn ensure_awake(&mut self) -> Result<(), TurntableError> {
+        if self.awake {
+            return Ok(());
+        }
+        let start = Instant::now();
+        let deadline = start + self.config.startup_wait;
+        let mut attempts = 0;
+        let mut last = None;
+        while Instant::now() < deadline {
+            attempts += 1;
+            self.io
+                .send(&[STATUS_QUERY])
+                .map_err(|e| serial::io_error("sending the status query ?", e))?;
+            let attempt_deadline = deadline.min(Instant::now() + self.config.exchange_timeout);
+            match self.read_status(attempt_deadline) {
+                Ok(s) => {
+                    tracing::debug!(state = ?s.state, waited = ?start.elapsed(), "grbl is up");
+                    self.awake = true;
+                    return Ok(());
+                }
+                // A stale ALARM line from before we connected: GRBL is up; the state says the rest.
+                Err(StatusFailure::Fatal(TurntableError::GrblAlarm { code, meaning })) => {
+                    tracing::warn!(code, meaning, "grbl reported an alarm on connect");
+                }
+                Err(StatusFailure::Fatal(e)) => return Err(e),
+                Err(StatusFailure::Retry(e)) => last = Some(e),
+            }
+        }
+        Err(TurntableError::Timeout {
+            command: "status query ? (is GRBL running at this baud rate?)".into(),
+            timeout: self.config.startup_wait,
+            attempts,
+            received: match last {
+                Some(TurntableError::Timeout { received, .. }) => received,
+                Some(TurntableError::UnexpectedReply { reply, .. }) => reply,
+                _ => String::new(),
+            },
+        })
     }
 
     /// Send a line command and wait for its `ok` (feedback lines are collected and returned).
@@ -497,6 +550,7 @@ impl<L: Link> GrblTurntable<L> {
 
     /// One status query, re-sent up to `status_retries` times, never past `deadline`.
     pub fn status(&mut self) -> Result<Status, TurntableError> {
+        self.ensure_awake()?;
         let deadline = Instant::now() + self.exchange_bound();
         self.status_before(deadline)
     }
@@ -642,6 +696,7 @@ impl<L: Link> GrblTurntable<L> {
 
     fn move_before(&mut self, target: Degrees, limit: Duration) -> Result<Degrees, TurntableError> {
         let target = Degrees::checked(target.0)?;
+        self.ensure_awake()?;
         let start = Instant::now();
         let deadline = start + limit;
         let units = target.0 / self.config.degrees_per_unit;
@@ -655,6 +710,7 @@ impl<L: Link> GrblTurntable<L> {
 
     /// Soft reset (0x18) and wait for the `Grbl …` banner. Leaves GRBL in `ALARM:3` if it was moving.
     pub fn soft_reset(&mut self) -> Result<(), TurntableError> {
+        self.ensure_awake()?;
         self.io
             .send(&[SOFT_RESET])
             .map_err(|e| serial::io_error("sending soft reset", e))?;
@@ -693,6 +749,7 @@ fn alarm(code: u16) -> TurntableError {
 
 impl<L: Link> Turntable for GrblTurntable<L> {
     fn describe(&mut self) -> Result<String, TurntableError> {
+        self.ensure_awake()?;
         let deadline = Instant::now() + self.config.exchange_timeout;
         let feedback = self.command(encode_build_info(), deadline)?;
         let version = feedback
@@ -707,6 +764,7 @@ impl<L: Link> Turntable for GrblTurntable<L> {
     }
 
     fn home(&mut self) -> Result<Degrees, TurntableError> {
+        self.ensure_awake()?;
         let limit = self.config.home_timeout;
         if self.config.homing {
             let start = Instant::now();
@@ -734,6 +792,7 @@ impl<L: Link> Turntable for GrblTurntable<L> {
     }
 
     fn stop(&mut self) -> Result<(), TurntableError> {
+        self.ensure_awake()?;
         self.io
             .send(&[FEED_HOLD])
             .map_err(|e| serial::io_error("sending feed hold !", e))?;

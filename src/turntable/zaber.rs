@@ -719,7 +719,22 @@ impl<L: Link> Turntable for ZaberTurntable<L> {
         let deadline = Instant::now() + self.exchange_bound();
         let axis = self.config.axis;
         self.exchange(axis, "stop", true, deadline)?;
-        Ok(())
+        // A Zaber stage decelerates after `stop`: return once it reports IDLE.
+        loop {
+            let (status, _) = self.poll(deadline)?;
+            if status == DeviceStatus::Idle {
+                return Ok(());
+            }
+            if Instant::now() + self.config.poll_interval >= deadline {
+                return Err(TurntableError::Timeout {
+                    command: "stop (waiting for IDLE)".into(),
+                    timeout: self.exchange_bound(),
+                    attempts: 1,
+                    received: String::new(),
+                });
+            }
+            std::thread::sleep(self.config.poll_interval);
+        }
     }
 
     fn resolution(&self) -> Degrees {
