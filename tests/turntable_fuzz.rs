@@ -211,3 +211,25 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn grbl_banner_mid_operation_is_an_unexpected_restart() {
+    let mut t = grbl_driver(vec![
+        b"<Idle|MPos:0.000,0.000,0.000>\r\n".to_vec(),
+        b"\r\nGrbl 1.1h ['$' for help]\r\n".to_vec(),
+    ]);
+    let err = t.move_to(cubecal::turntable::Degrees(10.0)).unwrap_err();
+    assert!(matches!(err, TurntableError::GrblRestarted), "{err:?}");
+}
+
+#[test]
+fn grbl_boot_banner_on_connect_is_expected() {
+    // What opening an Arduino looks like: silence while it boots, the banner, then answers.
+    let mut t = grbl_driver(vec![
+        b"\r\nGrbl 1.1h ['$' for help]\r\n".to_vec(),
+        // One status report for the wake-up poll, one for position().
+        b"<Idle|MPos:5.000,0.000,0.000>\r\n".to_vec(),
+        b"<Idle|MPos:5.000,0.000,0.000>\r\n".to_vec(),
+    ]);
+    assert_eq!(t.position().unwrap(), cubecal::turntable::Degrees(5.0));
+}

@@ -488,6 +488,10 @@ impl<L: Link> GrblTurntable<L> {
                 Err(StatusFailure::Fatal(TurntableError::GrblAlarm { code, meaning })) => {
                     tracing::warn!(code, meaning, "grbl reported an alarm on connect");
                 }
+                // The boot banner after the DTR reset: expected here; the next `?` will be answered.
+                Err(StatusFailure::Fatal(TurntableError::GrblRestarted)) => {
+                    tracing::debug!("grbl booted");
+                }
                 Err(StatusFailure::Fatal(e)) => return Err(e),
                 Err(StatusFailure::Retry(e)) => last = Some(e),
             }
@@ -508,15 +512,16 @@ impl<L: Link> GrblTurntable<L> {
     fn command(&mut self, cmd: &[u8], deadline: Instant) -> Result<Vec<String>, TurntableError> {
         let shown = escape_bytes(cmd.strip_suffix(b"\n").unwrap_or(cmd));
         tracing::debug!(command = %shown, "grbl send");
+        let waited = deadline.saturating_duration_since(Instant::now());
         self.io
             .send(cmd)
             .map_err(|e| serial::io_error(format!("sending {shown}"), e))?;
         let mut feedback = Vec::new();
         loop {
-            let line = self.io.read_line(deadline).map_err(|e| {
-                let waited = self.config.exchange_timeout;
-                serial::line_error(&shown, e, waited, 1)
-            })?;
+            let line = self
+                .io
+                .read_line(deadline)
+                .map_err(|e| serial::line_error(&shown, e, waited, 1))?;
             tracing::trace!(line = %escape_bytes(&line), "grbl recv");
             match decode_line(&line) {
                 Ok(Reply::Ok) => return Ok(feedback),
@@ -530,7 +535,8 @@ impl<L: Link> GrblTurntable<L> {
                 Ok(Reply::Alarm(code)) => return Err(alarm(code)),
                 Ok(Reply::Feedback(f)) => feedback.push(f),
                 Ok(Reply::Status(s)) => self.note_wco(&s),
-                Ok(Reply::Welcome { .. }) | Ok(Reply::Setting(_)) => {}
+                Ok(Reply::Welcome { .. }) => return Err(TurntableError::GrblRestarted),
+                Ok(Reply::Setting(_)) => {}
                 Err(e) => {
                     return Err(TurntableError::UnexpectedReply {
                         command: shown,
@@ -629,7 +635,10 @@ impl<L: Link> GrblTurntable<L> {
                     return Ok(s);
                 }
                 Ok(Reply::Alarm(code)) => return Err(StatusFailure::Fatal(alarm(code))),
-                // A late ok/error, a banner or a message: not ours, keep reading.
+                Ok(Reply::Welcome { .. }) => {
+                    return Err(StatusFailure::Fatal(TurntableError::GrblRestarted));
+                }
+                // A late ok/error or a message: not ours, keep reading.
                 Ok(_) => {}
                 Err(e) => {
                     return Err(StatusFailure::Retry(TurntableError::UnexpectedReply {

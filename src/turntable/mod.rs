@@ -50,16 +50,31 @@
 //! other flags are logged with `tracing::warn!`.
 //!
 //! # Timeouts and retries (every wait has a deadline)
-//! - Every exchange waits at most `exchange_timeout` for its reply.
+//! - Every exchange waits at most `exchange_timeout` for its reply (default 500 ms).
 //! - Zaber commands are all idempotent (absolute moves, queries, home, stop) and replies are matched on
 //!   device and axis, so a command without a reply (or with a garbled one) is re-sent, after draining
-//!   stale input, up to `retries` more times: at most `exchange_timeout × (retries + 1)` per exchange.
+//!   stale input for 5 ms, up to `retries` more times (default 2). Bound per exchange:
+//!   `exchange_timeout × (retries + 1)` plus 5 ms per re-send — 1.5 s by default.
 //! - GRBL line commands are **not** re-sent: GRBL answers every line with exactly one `ok`/`error`, and
-//!   re-sending a line whose `ok` was merely late would shift every later reply by one. Only the
-//!   real-time `?`, which has no such counting, is retried up to `retries` times.
+//!   re-sending a line whose `ok` was merely late would shift every later reply by one. A missing reply
+//!   fails after one `exchange_timeout`. Only the real-time `?`, which has no such counting, is retried
+//!   up to `status_retries` times (same bound as a Zaber exchange).
+//! - Opening an Arduino's USB port resets it (DTR) and GRBL ignores input for 1–2 s while it boots, so
+//!   before its first exchange the GRBL driver polls `?` for up to `startup_wait` (default 3 s).
 //! - On top of that each operation has an overall deadline: `move_timeout` for a move (command, motion,
-//!   polling, read-back), `home_timeout` for homing. No wait inside an operation extends past it, so a
-//!   move either settles or fails with a typed error within `move_timeout` (plus one poll interval).
+//!   polling, read-back; default 60 s), `home_timeout` for homing (default 120 s). No wait inside an
+//!   operation extends past it, so a move settles or fails with a typed error within `move_timeout`.
+//! - A settled position is accepted when it is within [`Turntable::resolution`] of the target; GRBL
+//!   must additionally report `Idle` away from the target [`grbl::SETTLE_CONFIRMATIONS`] times in a
+//!   row before that is called [`TurntableError::PositionMismatch`] (its `ok` precedes the motion).
+//!
+//! What a fault becomes: silence → [`TurntableError::Timeout`] (with any partial bytes, escaped);
+//! bytes that are not the protocol → [`TurntableError::UnexpectedReply`] (escaped); a closed or
+//! unplugged port → [`TurntableError::Disconnected`]; `ALARM:N` → [`TurntableError::GrblAlarm`] with
+//! the table's meaning; a Zaber `F…` flag → [`TurntableError::ZaberFault`]; settling in the wrong place
+//! → [`TurntableError::PositionMismatch`]; never settling → [`TurntableError::MoveTimeout`].
+//! `tests/turntable_contract.rs` injects each fault through the simulators and checks the variant and
+//! the time taken against these bounds (with 100 ms exchanges and 2 retries there).
 //!
 //! The constants [`DEFAULT_EXCHANGE_TIMEOUT`], [`DEFAULT_RETRIES`], [`DEFAULT_MOVE_TIMEOUT`],
 //! [`DEFAULT_HOME_TIMEOUT`] and [`DEFAULT_POLL_INTERVAL`] are the defaults for real hardware; tests use
@@ -70,6 +85,12 @@
 //! *parsers* or senders for CNC jobs (streaming files, no status-polled absolute positioning), and Zaber
 //! publishes its Motion Library for Python/C#/C++/Java but nothing for Rust. Both protocols are small,
 //! line-based ASCII; the part worth owning is the timeout/retry/settle logic, which is station-specific.
+//!
+//! # Testing against hardware
+//! `CUBECAL_TURNTABLE_PORT=/dev/ttyUSB0 CUBECAL_TURNTABLE_PROTOCOL=grbl|zaber cargo test --test
+//! turntable_contract -- --ignored` runs the contract against a real stage. For bring-up,
+//! `cubecal turntable simulate --protocol grbl` serves a simulator on a pty and prints its path;
+//! `udev/99-cubecal.rules` gives the `dialout` group access to common USB-serial adapters.
 
 use std::fmt;
 use std::io;
@@ -266,6 +287,10 @@ pub enum TurntableError {
     /// GRBL raised `ALARM:N`.
     #[error("GRBL alarm {code}: {meaning}")]
     GrblAlarm { code: u16, meaning: &'static str },
+    /// GRBL printed its start-up banner in the middle of an operation: it was reset (power or USB
+    /// glitch, someone pressed reset), so its position can no longer be trusted.
+    #[error("GRBL restarted unexpectedly (power, USB or reset button?): home it again")]
+    GrblRestarted,
     /// GRBL reports the Alarm state without a fresh `ALARM:N` line (e.g. after a reset or at power-up).
     #[error(
         "GRBL is in the Alarm state (position not trusted): home it ($H) or unlock it ($X) first"
@@ -341,6 +366,7 @@ impl TurntableError {
             | TurntableError::GrblError { .. }
             | TurntableError::GrblAlarm { .. }
             | TurntableError::GrblLocked
+            | TurntableError::GrblRestarted
             | TurntableError::ZaberRejected { .. }
             | TurntableError::ZaberFault { .. }
             | TurntableError::PositionMismatch { .. }

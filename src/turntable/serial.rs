@@ -227,11 +227,6 @@ pub fn line_error(command: &str, e: LineError, timeout: Duration, attempts: u32)
     }
 }
 
-/// Read bytes of a reply into a printable form for messages and logs.
-pub fn show(bytes: &[u8]) -> String {
-    escape_bytes(bytes)
-}
-
 #[cfg(test)]
 #[allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 mod tests {

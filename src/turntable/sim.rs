@@ -168,7 +168,11 @@ trait Machine: Send + 'static {
     fn hung_up(&self) -> bool;
 }
 
-fn spawn(mut port: TTYPort, mut machine: impl Machine, name: &'static str) -> SimHandle {
+fn spawn(
+    mut port: TTYPort,
+    mut machine: impl Machine,
+    name: &'static str,
+) -> Result<SimHandle, TurntableError> {
     let stop = Arc::new(AtomicBool::new(false));
     let flag = Arc::clone(&stop);
     let thread = std::thread::Builder::new()
@@ -206,14 +210,14 @@ fn spawn(mut port: TTYPort, mut machine: impl Machine, name: &'static str) -> Si
             }
         });
     match thread {
-        Ok(t) => SimHandle {
+        Ok(t) => Ok(SimHandle {
             stop,
             thread: Some(t),
-        },
-        Err(e) => {
-            tracing::error!(error = %e, "cannot spawn simulator thread");
-            SimHandle { stop, thread: None }
-        }
+        }),
+        Err(e) => Err(TurntableError::Simulator {
+            during: "spawning the simulator thread",
+            source: e.into(),
+        }),
     }
 }
 
@@ -221,7 +225,10 @@ fn spawn(mut port: TTYPort, mut machine: impl Machine, name: &'static str) -> Si
 /// or to keep open while an external client uses its path) and the handle.
 pub fn grbl_pair(config: SimConfig, grbl: GrblSim) -> Result<(TTYPort, SimHandle), TurntableError> {
     let (master, slave) = pty_pair()?;
-    Ok((slave, spawn(master, GrblMachine::new(config, grbl), "grbl")))
+    Ok((
+        slave,
+        spawn(master, GrblMachine::new(config, grbl), "grbl")?,
+    ))
 }
 
 /// Create a pty pair and serve a Zaber ASCII simulator on its master end (see [`grbl_pair`]).
@@ -232,7 +239,7 @@ pub fn zaber_pair(
     let (master, slave) = pty_pair()?;
     Ok((
         slave,
-        spawn(master, ZaberMachine::new(config, zaber), "zaber"),
+        spawn(master, ZaberMachine::new(config, zaber), "zaber")?,
     ))
 }
 
