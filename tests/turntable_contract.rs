@@ -21,16 +21,21 @@ use cubecal::turntable::zaber::{
 };
 use cubecal::turntable::{Degrees, Turntable, TurntableError};
 
-/// Reply timeout per exchange in these tests.
+/// Reply timeout per exchange in the fault tests (short, so the faults fail fast).
 const EXCHANGE: Duration = Duration::from_millis(100);
+/// Reply timeout per exchange in the healthy contract tests: generous, because a loaded machine can
+/// delay the simulator thread by a few hundred milliseconds; it costs nothing when replies come.
+const HEALTHY_EXCHANGE: Duration = Duration::from_secs(1);
 /// Re-sends per exchange in these tests.
 const RETRIES: u32 = 2;
 /// Overall limit per move in these tests.
 const MOVE_LIMIT: Duration = Duration::from_secs(2);
-/// Slack for thread scheduling on a loaded 2-core machine.
-const SLACK: Duration = Duration::from_millis(150);
+/// Slack for thread scheduling: the suite must pass while other builds load the 2-core machine.
+/// Unloaded, the overshoot past the theoretical bound is a few milliseconds (run with `--nocapture`
+/// to see the measured times); with three CPU hogs on two cores it reached 1.4 s once in ten runs.
+const SLACK: Duration = Duration::from_millis(1000);
 /// The bound for a fault that silences or garbles a retried exchange: every attempt, plus slack.
-const EXCHANGE_BOUND: Duration = Duration::from_millis(100 * (RETRIES as u64 + 1) + 150);
+const EXCHANGE_BOUND: Duration = Duration::from_millis(100 * (RETRIES as u64 + 1) + 1000);
 
 /// GRBL in these tests: 2 units per degree (0.5 °/unit), so the resolution is 0.001 × 0.5 = 0.0005°.
 const GRBL_DEG_PER_UNIT: f64 = 0.5;
@@ -44,7 +49,7 @@ struct Rig {
 fn grbl_config(homing: bool) -> GrblConfig {
     GrblConfig {
         homing,
-        exchange_timeout: EXCHANGE,
+        exchange_timeout: HEALTHY_EXCHANGE,
         status_retries: RETRIES,
         poll_interval: Duration::from_millis(3),
         move_timeout: MOVE_LIMIT,
@@ -53,9 +58,32 @@ fn grbl_config(homing: bool) -> GrblConfig {
     }
 }
 
+/// The healthy config, with the short fault-test exchange timeout when a fault is injected.
+fn grbl_fault_config(homing: bool, fault: Option<Fault>) -> GrblConfig {
+    GrblConfig {
+        exchange_timeout: if fault.is_some() {
+            EXCHANGE
+        } else {
+            HEALTHY_EXCHANGE
+        },
+        ..grbl_config(homing)
+    }
+}
+
+fn zaber_fault_config(fault: Option<Fault>) -> ZaberConfig {
+    ZaberConfig {
+        exchange_timeout: if fault.is_some() {
+            EXCHANGE
+        } else {
+            HEALTHY_EXCHANGE
+        },
+        ..zaber_config()
+    }
+}
+
 fn zaber_config() -> ZaberConfig {
     ZaberConfig {
-        exchange_timeout: EXCHANGE,
+        exchange_timeout: HEALTHY_EXCHANGE,
         retries: RETRIES,
         poll_interval: Duration::from_millis(3),
         move_timeout: MOVE_LIMIT,
@@ -99,7 +127,7 @@ fn grbl_with(homing: bool, fault: Option<Fault>) -> Rig {
     )
     .unwrap();
     Rig {
-        table: Box::new(GrblTurntable::new(port, grbl_config(homing)).unwrap()),
+        table: Box::new(GrblTurntable::new(port, grbl_fault_config(homing, fault)).unwrap()),
         _sim: Some(sim),
     }
 }
@@ -122,7 +150,7 @@ fn zaber_with(fault: Option<Fault>) -> Rig {
     )
     .unwrap();
     Rig {
-        table: Box::new(ZaberTurntable::new(port, zaber_config()).unwrap()),
+        table: Box::new(ZaberTurntable::new(port, zaber_fault_config(fault)).unwrap()),
         _sim: Some(sim),
     }
 }
@@ -324,7 +352,7 @@ fn grbl_alarm_mid_move_names_the_alarm() {
         "{err:?}"
     );
     assert!(err.to_string().contains("Hard limit triggered"), "{err}");
-    assert_within(elapsed, MOVE_LIMIT, &err);
+    assert_within(elapsed, MOVE_LIMIT + SLACK, &err);
 }
 
 #[test]
@@ -341,7 +369,7 @@ fn grbl_lost_steps_is_a_position_mismatch() {
         }
         ref other => panic!("{other:?}"),
     }
-    assert_within(elapsed, MOVE_LIMIT, &err);
+    assert_within(elapsed, MOVE_LIMIT + SLACK, &err);
 }
 
 #[test]
@@ -357,10 +385,17 @@ fn grbl_port_closed_is_a_disconnect() {
 #[test]
 fn grbl_simulator_gone_is_an_error_not_a_hang() {
     // Stopping the simulator closes the pty master: the next status query must fail promptly.
-    let rig = grbl_with(true, None);
-    let mut t = rig.table;
+    let (port, sim) = sim::grbl_pair(
+        grbl_sim_config(None),
+        GrblSim {
+            axis: Axis::A,
+            homing: true,
+        },
+    )
+    .unwrap();
+    let mut t = GrblTurntable::new(port, grbl_fault_config(true, Some(Fault::PortClosed))).unwrap();
     t.home().unwrap();
-    drop(rig._sim);
+    drop(sim);
     let start = Instant::now();
     let err = t.position().expect_err("no simulator");
     assert!(
@@ -424,7 +459,7 @@ fn zaber_stall_mid_move_is_a_typed_fault() {
         err.to_string().contains("FS (stalled and stopped)"),
         "{err}"
     );
-    assert_within(elapsed, MOVE_LIMIT, &err);
+    assert_within(elapsed, MOVE_LIMIT + SLACK, &err);
 }
 
 #[test]
@@ -434,7 +469,7 @@ fn zaber_lost_steps_is_a_position_mismatch() {
         matches!(err, TurntableError::PositionMismatch { .. }),
         "{err:?}"
     );
-    assert_within(elapsed, MOVE_LIMIT, &err);
+    assert_within(elapsed, MOVE_LIMIT + SLACK, &err);
 }
 
 #[test]
@@ -482,7 +517,8 @@ fn zaber_wrong_device_address_times_out() {
         },
     )
     .unwrap();
-    let mut t = ZaberTurntable::new(port, zaber_config()).unwrap();
+    // Nobody answers at address 1, which looks like a silent device: use the short fault timeout.
+    let mut t = ZaberTurntable::new(port, zaber_fault_config(Some(Fault::NoReply))).unwrap();
     let start = Instant::now();
     let err = t.position().expect_err("nobody at address 1");
     assert!(matches!(err, TurntableError::Timeout { .. }), "{err:?}");
@@ -512,10 +548,9 @@ fn move_timeout_then_stop(mut t: Box<dyn Turntable>) {
     assert_eq!(p1, p2, "still moving after stop");
     assert!(p1.0 > 0.0 && p1.0 < 90.0, "{p1}");
     // Not locked out: feed hold before the reset means GRBL keeps its position (no ALARM:3).
-    // A short move, so it fits the short limit.
-    let back = Degrees(p1.0 - 0.5);
-    let p3 = t.move_to(back).unwrap();
-    assert!(p3.within(back, tol(&*t)), "{p3}");
+    // A zero-length move, so it fits the short limit even on a loaded machine.
+    let p3 = t.move_to(p1).unwrap();
+    assert!(p3.within(p1, tol(&*t)), "{p3}");
 }
 
 const SHORT_MOVE_LIMIT: Duration = Duration::from_millis(200);

@@ -212,11 +212,49 @@ proptest! {
     }
 }
 
+/// A link that answers each send with the next scripted reply (possibly empty: silence).
+struct Replies {
+    script: std::collections::VecDeque<Vec<u8>>,
+    pending: Vec<u8>,
+}
+
+impl Link for Replies {
+    fn send(&mut self, _bytes: &[u8]) -> io::Result<()> {
+        if let Some(r) = self.script.pop_front() {
+            self.pending.extend(r);
+        }
+        Ok(())
+    }
+    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
+        if self.pending.is_empty() {
+            std::thread::sleep(timeout.min(Duration::from_millis(1)));
+            return Ok(0);
+        }
+        let n = self.pending.len().min(buf.len());
+        buf[..n].copy_from_slice(&self.pending[..n]);
+        self.pending.drain(..n);
+        Ok(n)
+    }
+}
+
+fn grbl_scripted(script: &[&[u8]]) -> GrblTurntable<Replies> {
+    let config = GrblConfig {
+        exchange_timeout: Duration::from_millis(20),
+        startup_wait: Duration::from_millis(200),
+        ..GrblConfig::new(Axis::X, 1.0)
+    };
+    let link = Replies {
+        script: script.iter().map(|r| r.to_vec()).collect(),
+        pending: Vec::new(),
+    };
+    GrblTurntable::new(link, config).unwrap()
+}
+
 #[test]
 fn grbl_banner_mid_operation_is_an_unexpected_restart() {
-    let mut t = grbl_driver(vec![
-        b"<Idle|MPos:0.000,0.000,0.000>\r\n".to_vec(),
-        b"\r\nGrbl 1.1h ['$' for help]\r\n".to_vec(),
+    let mut t = grbl_scripted(&[
+        b"<Idle|MPos:0.000,0.000,0.000>\r\n", // wake-up ?
+        b"\r\nGrbl 1.1h ['$' for help]\r\n",  // answer to the G0 line: it rebooted
     ]);
     let err = t.move_to(cubecal::turntable::Degrees(10.0)).unwrap_err();
     assert!(matches!(err, TurntableError::GrblRestarted), "{err:?}");
@@ -224,12 +262,27 @@ fn grbl_banner_mid_operation_is_an_unexpected_restart() {
 
 #[test]
 fn grbl_boot_banner_on_connect_is_expected() {
-    // What opening an Arduino looks like: silence while it boots, the banner, then answers.
-    let mut t = grbl_driver(vec![
-        b"\r\nGrbl 1.1h ['$' for help]\r\n".to_vec(),
-        // One status report for the wake-up poll, one for position().
-        b"<Idle|MPos:5.000,0.000,0.000>\r\n".to_vec(),
-        b"<Idle|MPos:5.000,0.000,0.000>\r\n".to_vec(),
+    // What opening an Arduino looks like: the first ? is lost in the boot, the banner comes, then
+    // answers.
+    let mut t = grbl_scripted(&[
+        b"",
+        b"\r\nGrbl 1.1h ['$' for help]\r\n",
+        b"<Idle|MPos:5.000,0.000,0.000>\r\n",
+        b"<Idle|MPos:5.000,0.000,0.000>\r\n",
     ]);
     assert_eq!(t.position().unwrap(), cubecal::turntable::Degrees(5.0));
+}
+
+#[test]
+fn grbl_late_status_reports_do_not_lag_the_position() {
+    // The first ? is answered late (after its timeout), together with the retry's answer: the
+    // newest report must win, and the next query must not read a leftover.
+    let mut t = grbl_scripted(&[
+        b"<Idle|MPos:0.000,0.000,0.000>\r\n", // wake-up
+        b"",                                  // ? times out...
+        b"<Run|MPos:1.000,0.000,0.000>\r\n<Idle|MPos:2.000,0.000,0.000>\r\n", // ...both arrive
+        b"<Idle|MPos:3.000,0.000,0.000>\r\n",
+    ]);
+    assert_eq!(t.position().unwrap(), cubecal::turntable::Degrees(2.0));
+    assert_eq!(t.position().unwrap(), cubecal::turntable::Degrees(3.0));
 }

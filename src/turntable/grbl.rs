@@ -508,8 +508,28 @@ impl<L: Link> GrblTurntable<L> {
         })
     }
 
+    /// Consume lines that arrived since the last exchange (a late `ok`, a status report answering a
+    /// `?` that had already timed out) so they are not taken for the next reply. An `ALARM:N` or a
+    /// start-up banner among them is still an error.
+    fn flush_stale(&mut self) -> Result<(), TurntableError> {
+        while let Some(line) = self
+            .io
+            .try_line()
+            .map_err(|e| serial::io_error("reading stale input", e))?
+        {
+            match decode_line(&line) {
+                Ok(Reply::Alarm(code)) => return Err(alarm(code)),
+                Ok(Reply::Welcome { .. }) => return Err(TurntableError::GrblRestarted),
+                Ok(Reply::Status(s)) => self.note_wco(&s),
+                _ => tracing::debug!(line = %escape_bytes(&line), "grbl: dropping a stale line"),
+            }
+        }
+        Ok(())
+    }
+
     /// Send a line command and wait for its `ok` (feedback lines are collected and returned).
     fn command(&mut self, cmd: &[u8], deadline: Instant) -> Result<Vec<String>, TurntableError> {
+        self.flush_stale()?;
         let shown = escape_bytes(cmd.strip_suffix(b"\n").unwrap_or(cmd));
         tracing::debug!(command = %shown, "grbl send");
         let waited = deadline.saturating_duration_since(Instant::now());
@@ -567,15 +587,15 @@ impl<L: Link> GrblTurntable<L> {
     }
 
     fn status_before(&mut self, deadline: Instant) -> Result<Status, TurntableError> {
+        self.flush_stale()?;
         let mut last_failure = None;
         let mut attempts = 0;
         while attempts <= self.config.status_retries && Instant::now() < deadline {
             attempts += 1;
             if attempts > 1 {
                 // Drop the tail of a garbled report before asking again.
-                self.io
-                    .drain(Duration::from_millis(5))
-                    .map_err(|e| serial::io_error("draining stale input", e))?;
+                self.flush_stale()?;
+                self.io.drop_partial();
             }
             self.io
                 .send(&[STATUS_QUERY])
@@ -632,7 +652,7 @@ impl<L: Link> GrblTurntable<L> {
             match decode_line(&line) {
                 Ok(Reply::Status(s)) => {
                     self.note_wco(&s);
-                    return Ok(s);
+                    return self.newest(s);
                 }
                 Ok(Reply::Alarm(code)) => return Err(StatusFailure::Fatal(alarm(code))),
                 Ok(Reply::Welcome { .. }) => {
@@ -647,6 +667,34 @@ impl<L: Link> GrblTurntable<L> {
                         reply: e.line,
                     }));
                 }
+            }
+        }
+    }
+
+    /// `?` carries no id, so a report that answered an earlier, timed-out query can arrive first:
+    /// if newer reports are already waiting, the newest one wins.
+    fn newest(&mut self, mut s: Status) -> Result<Status, StatusFailure> {
+        loop {
+            let line = match self.io.try_line() {
+                Ok(Some(line)) => line,
+                Ok(None) => return Ok(s),
+                Err(e) => {
+                    return Err(StatusFailure::Fatal(serial::io_error(
+                        "reading status reports",
+                        e,
+                    )));
+                }
+            };
+            match decode_line(&line) {
+                Ok(Reply::Status(newer)) => {
+                    self.note_wco(&newer);
+                    s = newer;
+                }
+                Ok(Reply::Alarm(code)) => return Err(StatusFailure::Fatal(alarm(code))),
+                Ok(Reply::Welcome { .. }) => {
+                    return Err(StatusFailure::Fatal(TurntableError::GrblRestarted));
+                }
+                _ => {}
             }
         }
     }
@@ -670,11 +718,14 @@ impl<L: Link> GrblTurntable<L> {
     ) -> Result<Degrees, TurntableError> {
         let tolerance = Degrees(self.config.resolution().0 * 1.000_001);
         let mut idle_elsewhere = 0;
-        let mut last_state;
+        let mut last_state = None;
         loop {
-            let s = self.status_before(deadline)?;
+            let s = match self.status_before(deadline) {
+                Ok(s) => s,
+                Err(e) => return Err(super::out_of_time(e, deadline, target, limit, last_state)),
+            };
             let pos = self.degrees_of(&s)?;
-            last_state = format!("{:?} at {pos}", s.state);
+            last_state = Some(format!("{:?} at {pos}", s.state));
             match s.state {
                 State::Alarm => return Err(TurntableError::GrblLocked),
                 State::Idle if pos.within(target, tolerance) => return Ok(pos),
@@ -699,7 +750,7 @@ impl<L: Link> GrblTurntable<L> {
         Err(TurntableError::MoveTimeout {
             target,
             limit,
-            last_state,
+            last_state: last_state.unwrap_or_default(),
         })
     }
 

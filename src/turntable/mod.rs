@@ -51,14 +51,17 @@
 //!
 //! # Timeouts and retries (every wait has a deadline)
 //! - Every exchange waits at most `exchange_timeout` for its reply (default 500 ms).
-//! - Zaber commands are all idempotent (absolute moves, queries, home, stop) and replies are matched on
-//!   device and axis, so a command without a reply (or with a garbled one) is re-sent, after draining
-//!   stale input for 5 ms, up to `retries` more times (default 2). Bound per exchange:
-//!   `exchange_timeout × (retries + 1)` plus 5 ms per re-send — 1.5 s by default.
+//! - Zaber commands are all idempotent (absolute moves, queries, home, stop) and every attempt carries
+//!   its own message id (`/1 1 17 get pos` → `@01 1 17 …`), so a late reply to an earlier attempt is
+//!   recognised and skipped. A command without a reply (or with a garbled one) is re-sent up to
+//!   `retries` more times (default 2). Bound per exchange: `exchange_timeout × (retries + 1)`, 1.5 s
+//!   by default.
 //! - GRBL line commands are **not** re-sent: GRBL answers every line with exactly one `ok`/`error`, and
 //!   re-sending a line whose `ok` was merely late would shift every later reply by one. A missing reply
 //!   fails after one `exchange_timeout`. Only the real-time `?`, which has no such counting, is retried
-//!   up to `status_retries` times (same bound as a Zaber exchange).
+//!   up to `status_retries` times (same bound as a Zaber exchange). GRBL replies carry no ids, so
+//!   before each exchange the driver consumes lines that arrived late (an `ALARM:N` among them is still
+//!   an error), and when several status reports are waiting the newest wins.
 //! - Opening an Arduino's USB port resets it (DTR) and GRBL ignores input for 1–2 s while it boots, so
 //!   before its first exchange the GRBL driver polls `?` for up to `startup_wait` (default 3 s).
 //! - On top of that each operation has an overall deadline: `move_timeout` for a move (command, motion,
@@ -383,6 +386,29 @@ impl TurntableError {
 /// Escape bytes for an error message: printable ASCII as is, everything else as `\xNN`, `\r`, `\n`.
 pub fn escape_bytes(bytes: &[u8]) -> String {
     bytes.escape_ascii().to_string()
+}
+
+/// A poll that failed because the move's own deadline cut it short is a [`TurntableError::MoveTimeout`]
+/// (the stage was answering but had not settled), not a reply timeout. Any other error passes through.
+pub(crate) fn out_of_time(
+    e: TurntableError,
+    deadline: std::time::Instant,
+    target: Degrees,
+    limit: Duration,
+    last_state: Option<String>,
+) -> TurntableError {
+    match e {
+        TurntableError::Timeout { attempts, .. }
+            if std::time::Instant::now() >= deadline && (last_state.is_some() || attempts == 0) =>
+        {
+            TurntableError::MoveTimeout {
+                target,
+                limit,
+                last_state: last_state.unwrap_or_else(|| "no status yet".into()),
+            }
+        }
+        e => e,
+    }
 }
 
 /// Check a timing configuration value is usable (non-zero).

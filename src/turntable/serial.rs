@@ -149,6 +149,22 @@ impl<L: Link> LineIo<L> {
         }
     }
 
+    /// Forget a partial line (the tail of garbage) received so far.
+    pub fn drop_partial(&mut self) {
+        self.pending.clear();
+    }
+
+    /// The next complete line already received, without waiting; a partial line stays buffered.
+    pub fn try_line(&mut self) -> io::Result<Option<Vec<u8>>> {
+        if let Some(line) = self.take_line() {
+            return Ok(Some(line));
+        }
+        let mut buf = [0u8; 256];
+        let n = self.link.receive(&mut buf, Duration::ZERO)?;
+        self.pending.extend_from_slice(&buf[..n]);
+        Ok(self.take_line())
+    }
+
     /// Read the next non-empty line before `deadline`. Lines longer than [`MAX_LINE_BYTES`] are cut
     /// and returned as they are (the caller will find them unexpected).
     pub fn read_line(&mut self, deadline: Instant) -> Result<Vec<u8>, LineError> {

@@ -20,6 +20,18 @@ pub fn encode(device: u8, axis: u8, command: &str) -> String {
     }
 }
 
+/// Encode a command carrying a message id (0–99), which the device echoes in its reply.
+pub fn encode_with_id(device: u8, axis: u8, id: u8, command: &str) -> String {
+    if command.is_empty() {
+        format!("/{device} {axis} {id}\n")
+    } else {
+        format!("/{device} {axis} {id} {command}\n")
+    }
+}
+
+/// Message ids run 0..=99 and wrap.
+pub const MAX_MESSAGE_ID: u8 = 99;
+
 /// `home`: find the home sensor; position becomes 0.
 pub fn encode_home(device: u8, axis: u8) -> String {
     encode(device, axis, "home")
@@ -481,10 +493,8 @@ pub struct ZaberTurntable<L> {
     io: LineIo<L>,
     config: ZaberConfig,
     last_warning: Option<Flag>,
+    next_id: u8,
 }
-
-/// Pause before a re-send, to let a late reply arrive and be drained.
-const RESEND_QUIET: Duration = Duration::from_millis(5);
 
 impl<L: Link> ZaberTurntable<L> {
     /// Wrap a link to a Zaber device. No bytes are exchanged yet.
@@ -494,6 +504,7 @@ impl<L: Link> ZaberTurntable<L> {
             io: LineIo::new(link),
             config,
             last_warning: None,
+            next_id: 0,
         })
     }
 
@@ -523,23 +534,24 @@ impl<L: Link> ZaberTurntable<L> {
         motion: bool,
         deadline: Instant,
     ) -> Result<Reply, TurntableError> {
-        let text = encode(self.config.device, axis, command);
-        let shown = text.trim_end().to_string();
+        let shown = encode(self.config.device, axis, command)
+            .trim_end()
+            .to_string();
         let mut attempts = 0;
         let mut last_failure = None;
         while attempts <= self.config.retries && Instant::now() < deadline {
             attempts += 1;
-            if attempts > 1 {
-                self.io
-                    .drain(RESEND_QUIET)
-                    .map_err(|e| serial::io_error("draining stale input", e))?;
-            }
-            tracing::debug!(command = %shown, attempt = attempts, "zaber send");
+            // Every attempt gets its own id, so a late reply to an earlier attempt (or command) is
+            // recognised and skipped instead of being taken for this one.
+            let id = self.next_id;
+            self.next_id = if id >= MAX_MESSAGE_ID { 0 } else { id + 1 };
+            let text = encode_with_id(self.config.device, axis, id, command);
+            tracing::debug!(command = %text.trim_end(), attempt = attempts, "zaber send");
             self.io
                 .send(text.as_bytes())
                 .map_err(|e| serial::io_error(format!("sending {shown}"), e))?;
             let attempt_deadline = deadline.min(Instant::now() + self.config.exchange_timeout);
-            match self.read_reply(&shown, axis, attempt_deadline) {
+            match self.read_reply(&shown, axis, id, attempt_deadline) {
                 Ok(reply) => return self.check(reply, &shown, motion),
                 Err(Failure::Fatal(e)) => return Err(e),
                 Err(Failure::Retry(e)) => {
@@ -565,7 +577,13 @@ impl<L: Link> ZaberTurntable<L> {
         })
     }
 
-    fn read_reply(&mut self, shown: &str, axis: u8, deadline: Instant) -> Result<Reply, Failure> {
+    fn read_reply(
+        &mut self,
+        shown: &str,
+        axis: u8,
+        id: u8,
+        deadline: Instant,
+    ) -> Result<Reply, Failure> {
         loop {
             let line = self.io.read_line(deadline).map_err(|e| {
                 let timed_out = matches!(e, serial::LineError::TimedOut { .. });
@@ -578,10 +596,14 @@ impl<L: Link> ZaberTurntable<L> {
             })?;
             tracing::trace!(line = %escape_bytes(&line), "zaber recv");
             match decode_line(&line) {
-                Ok(Message::Reply(r)) if r.device == self.config.device && r.axis == axis => {
+                Ok(Message::Reply(r))
+                    if r.device == self.config.device
+                        && r.axis == axis
+                        && r.message_id == Some(id) =>
+                {
                     return Ok(r);
                 }
-                // Other devices' replies, alerts and info lines are not ours.
+                // Stale replies (other ids), other devices' replies, alerts and info lines.
                 Ok(_) => {}
                 Err(e) => {
                     return Err(Failure::Retry(TurntableError::UnexpectedReply {
@@ -653,10 +675,13 @@ impl<L: Link> ZaberTurntable<L> {
         let axis = self.config.axis;
         self.exchange(axis, command, true, deadline)?;
         let tolerance = Degrees(self.config.resolution().0 * 1.000_001);
-        let mut last_state;
+        let mut last_state = None;
         loop {
-            let (status, pos) = self.poll(deadline)?;
-            last_state = format!("{status:?} at {pos}");
+            let (status, pos) = match self.poll(deadline) {
+                Ok(p) => p,
+                Err(e) => return Err(super::out_of_time(e, deadline, target, limit, last_state)),
+            };
+            last_state = Some(format!("{status:?} at {pos}"));
             if status == DeviceStatus::Idle {
                 if pos.within(target, tolerance) {
                     tracing::info!(%target, %pos, elapsed = ?start.elapsed(), "zaber move settled");
@@ -676,7 +701,7 @@ impl<L: Link> ZaberTurntable<L> {
         Err(TurntableError::MoveTimeout {
             target,
             limit,
-            last_state,
+            last_state: last_state.unwrap_or_default(),
         })
     }
 }
@@ -754,6 +779,8 @@ mod tests {
         assert_eq!(encode_status(2, 1), "/2 1\n");
         assert_eq!(encode_get_pos(1, 1), "/1 1 get pos\n");
         assert_eq!(encode_stop(1, 1), "/1 1 stop\n");
+        assert_eq!(encode_with_id(1, 1, 7, "get pos"), "/1 1 7 get pos\n");
+        assert_eq!(encode_with_id(3, 0, 99, ""), "/3 0 99\n");
     }
 
     fn reply(flag: ReplyFlag, status: DeviceStatus, warning: Option<Flag>, data: &str) -> Message {
