@@ -532,7 +532,9 @@ impl<L: Link> GrblTurntable<L> {
         self.flush_stale()?;
         let shown = escape_bytes(cmd.strip_suffix(b"\n").unwrap_or(cmd));
         tracing::debug!(command = %shown, "grbl send");
+        // The wait this reply gets, rounded up to whole milliseconds for the error message.
         let waited = deadline.saturating_duration_since(Instant::now());
+        let waited = Duration::from_millis(waited.as_micros().div_ceil(1000) as u64);
         self.io
             .send(cmd)
             .map_err(|e| serial::io_error(format!("sending {shown}"), e))?;
