@@ -1,25 +1,378 @@
-//! `cubecal turntable ...` (being built under issue 6).
+//! `cubecal turntable ...`: bring-up commands for a serial turntable (probe, home, move, status) and a
+//! protocol simulator on a pseudo-terminal. Parse the arguments, validate them into driver configs,
+//! run, render (human text or `--json`). Port-access hints (dialout group, udev rule) live here.
 
-use clap::Subcommand;
+use std::io::{BufRead, Write};
+
+use serialport::SerialPort;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use clap::{Args, Subcommand, ValueEnum};
+use cubecal::exit;
+use cubecal::turntable::grbl::{Axis, GrblConfig, GrblTurntable};
+use cubecal::turntable::manual::{FixedRig, MANUAL_RESOLUTION, ManualTurntable, Operator};
+use cubecal::turntable::serial::open_port;
+use cubecal::turntable::sim::{self, Fault, GrblSim, SimConfig, ZaberSim};
+use cubecal::turntable::zaber::{X_RSW60A_MICROSTEPS_PER_DEGREE, ZaberConfig, ZaberTurntable};
+use cubecal::turntable::{DEFAULT_RETRIES, Degrees, Turntable, TurntableError};
 
 use super::Output;
 
 #[derive(Debug, Subcommand)]
 pub enum TurntableCommand {
-    /// Print the state of a turntable.
-    Status {
-        /// Serial port path, e.g. /dev/ttyUSB0.
-        #[arg(long)]
-        port: String,
+    /// Open the port, identify the turntable (firmware) and read its position.
+    Probe(Conn),
+    /// Home the turntable (find its reference position).
+    Home(Conn),
+    /// Move to an absolute angle and wait until the stage reports it has settled.
+    Move {
+        /// Target angle in degrees (absolute, may be negative).
+        #[arg(allow_negative_numbers = true)]
+        angle: f64,
+        #[command(flatten)]
+        conn: Conn,
     },
+    /// Print the current position.
+    Status(Conn),
+    /// Serve a simulated turntable on a pseudo-terminal; prints the port path to use with --port.
+    Simulate(SimulateArgs),
 }
 
-pub fn run(cmd: TurntableCommand, _out: Output) -> anyhow::Result<u8> {
-    match cmd {
-        TurntableCommand::Status { port } => Err(cubecal::turntable::TurntableError::Open {
-            path: port,
-            source: std::io::Error::other("not implemented yet"),
-        }
-        .into()),
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ProtocolArg {
+    /// GRBL 1.1 G-code controller.
+    Grbl,
+    /// Zaber ASCII protocol.
+    Zaber,
+    /// A hand-turned table: the operator turns it and confirms on the terminal.
+    Manual,
+    /// No turntable (fixed rig).
+    None,
+}
+
+/// How to reach the turntable.
+#[derive(Debug, Args)]
+pub struct Conn {
+    /// Serial port path, e.g. /dev/ttyUSB0 (required for grbl and zaber).
+    #[arg(long)]
+    port: Option<String>,
+    /// Protocol spoken by the turntable.
+    #[arg(long, value_enum)]
+    protocol: ProtocolArg,
+    /// Baud rate.
+    #[arg(long, default_value_t = 115_200)]
+    baud: u32,
+    #[command(flatten)]
+    drive: DriveArgs,
+    /// Reply timeout for one exchange, in milliseconds.
+    #[arg(long, default_value_t = 500)]
+    timeout_ms: u64,
+    /// Re-sends after a missing or garbled reply.
+    #[arg(long, default_value_t = DEFAULT_RETRIES)]
+    retries: u32,
+    /// Limit for one move, in seconds (homing gets twice this).
+    #[arg(long, default_value_t = 60)]
+    move_timeout_s: u64,
+}
+
+/// Protocol-specific mechanics (shared by the drivers and the simulator).
+#[derive(Debug, Args)]
+pub struct DriveArgs {
+    /// GRBL: axis letter the table is wired to (X, Y, Z, A, B, C).
+    #[arg(long, default_value = "X", value_parser = parse_axis)]
+    axis: Axis,
+    /// GRBL: degrees of rotation per GRBL unit.
+    #[arg(long, default_value_t = 1.0)]
+    degrees_per_unit: f64,
+    /// GRBL: home with $H (homing switches configured) instead of $X and a move to 0.
+    #[arg(long)]
+    homing: bool,
+    /// Zaber: microsteps per degree (default: X-RSW60A, 0.000234375° per microstep).
+    #[arg(long, default_value_t = X_RSW60A_MICROSTEPS_PER_DEGREE)]
+    microsteps_per_degree: f64,
+    /// Zaber: device address on the chain.
+    #[arg(long, default_value_t = 1)]
+    device: u8,
+    /// Zaber: axis number on the device.
+    #[arg(long, default_value_t = 1)]
+    zaber_axis: u8,
+}
+
+fn parse_axis(s: &str) -> Result<Axis, String> {
+    let mut chars = s.chars();
+    match (chars.next().and_then(Axis::from_letter), chars.next()) {
+        (Some(a), None) => Ok(a),
+        _ => Err(format!("expected one of X, Y, Z, A, B, C, got {s:?}")),
     }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SimProtocol {
+    Grbl,
+    Zaber,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FaultArg {
+    NoReply,
+    Garbage,
+    Alarm,
+    LostSteps,
+    PortClosed,
+}
+
+#[derive(Debug, Args)]
+pub struct SimulateArgs {
+    /// Protocol to simulate.
+    #[arg(long, value_enum)]
+    protocol: SimProtocol,
+    /// Stop after this many seconds (default: serve until Ctrl-C).
+    #[arg(long)]
+    seconds: Option<u64>,
+    /// Cruise speed, degrees per second.
+    #[arg(long, default_value_t = 30.0)]
+    speed_deg_s: f64,
+    /// Acceleration, degrees per second squared.
+    #[arg(long, default_value_t = 60.0)]
+    accel_deg_s2: f64,
+    /// Inject a fault on the first move command (lost-steps: every move ends 0.5° past its target).
+    #[arg(long, value_enum)]
+    fault: Option<FaultArg>,
+    #[command(flatten)]
+    drive: DriveArgs,
+}
+
+pub fn run(cmd: TurntableCommand, out: Output) -> anyhow::Result<u8> {
+    match cmd {
+        TurntableCommand::Probe(conn) => {
+            let mut t = conn.open()?;
+            let device = t.describe()?;
+            let pos = t.position()?;
+            render(
+                out,
+                &format!("{device}\nposition {pos}, resolution {}", t.resolution()),
+                serde_json::json!({
+                    "device": device,
+                    "position_deg": pos.0,
+                    "resolution_deg": t.resolution().0,
+                }),
+            );
+        }
+        TurntableCommand::Home(conn) => {
+            let mut t = conn.open()?;
+            let start = Instant::now();
+            let pos = t.home()?;
+            render(
+                out,
+                &format!(
+                    "homed: position {pos} ({:.2} s)",
+                    start.elapsed().as_secs_f64()
+                ),
+                serde_json::json!({ "position_deg": pos.0, "elapsed_s": start.elapsed().as_secs_f64() }),
+            );
+        }
+        TurntableCommand::Move { angle, conn } => {
+            let target = Degrees::checked(angle)?;
+            let mut t = conn.open()?;
+            let start = Instant::now();
+            let pos = t.move_to(target)?;
+            render(
+                out,
+                &format!(
+                    "settled at {pos} (target {target}, {:.2} s)",
+                    start.elapsed().as_secs_f64()
+                ),
+                serde_json::json!({
+                    "target_deg": target.0,
+                    "position_deg": pos.0,
+                    "elapsed_s": start.elapsed().as_secs_f64(),
+                }),
+            );
+        }
+        TurntableCommand::Status(conn) => {
+            let mut t = conn.open()?;
+            let pos = t.position()?;
+            render(
+                out,
+                &format!("position {pos}"),
+                serde_json::json!({ "position_deg": pos.0, "resolution_deg": t.resolution().0 }),
+            );
+        }
+        TurntableCommand::Simulate(args) => simulate(args, out)?,
+    }
+    Ok(exit::SUCCESS)
+}
+
+#[allow(clippy::print_stdout)]
+fn render(out: Output, human: &str, json: serde_json::Value) {
+    if out.json {
+        println!("{json}");
+    } else {
+        println!("{human}");
+    }
+}
+
+impl Conn {
+    /// Validate the arguments into a driver and open the port.
+    fn open(&self) -> anyhow::Result<Box<dyn Turntable>> {
+        let exchange_timeout = Duration::from_millis(self.timeout_ms);
+        let move_timeout = Duration::from_secs(self.move_timeout_s);
+        let d = &self.drive;
+        match self.protocol {
+            ProtocolArg::None => Ok(Box::new(FixedRig)),
+            ProtocolArg::Manual => Ok(Box::new(ManualTurntable::new(
+                TerminalOperator,
+                MANUAL_RESOLUTION,
+            )?)),
+            ProtocolArg::Grbl => {
+                let config = GrblConfig {
+                    homing: d.homing,
+                    exchange_timeout,
+                    status_retries: self.retries,
+                    move_timeout,
+                    home_timeout: move_timeout * 2,
+                    ..GrblConfig::new(d.axis, d.degrees_per_unit)
+                };
+                let port = self.open_port()?;
+                Ok(Box::new(GrblTurntable::new(port, config)?))
+            }
+            ProtocolArg::Zaber => {
+                let config = ZaberConfig {
+                    device: d.device,
+                    axis: d.zaber_axis,
+                    exchange_timeout,
+                    retries: self.retries,
+                    move_timeout,
+                    home_timeout: move_timeout * 2,
+                    ..ZaberConfig::new(d.microsteps_per_degree)
+                };
+                let port = self.open_port()?;
+                Ok(Box::new(ZaberTurntable::new(port, config)?))
+            }
+        }
+    }
+
+    fn open_port(&self) -> anyhow::Result<Box<dyn serialport::SerialPort>> {
+        let path = self
+            .port
+            .as_deref()
+            .ok_or_else(|| TurntableError::InvalidConfig {
+                field: "--port",
+                reason: "required for --protocol grbl and zaber".into(),
+            })?;
+        open_port(path, self.baud).map_err(|e| {
+            let hint = match &e {
+                TurntableError::PermissionDenied { .. } => Some(
+                    "join the `dialout` group (sudo usermod -aG dialout $USER, then log out and in) \
+                     or install udev/99-cubecal.rules into /etc/udev/rules.d/",
+                ),
+                TurntableError::PortNotFound { .. } => Some(
+                    "check the cable and the path (ls /dev/ttyUSB* /dev/ttyACM* /dev/serial/by-id/)",
+                ),
+                TurntableError::PortBusy { .. } => Some(
+                    "close the other program using it (fuser -v PATH shows which)",
+                ),
+                _ => None,
+            };
+            match hint {
+                Some(h) => anyhow::Error::new(e).context(format!("turntable port unavailable: {h}")),
+                None => e.into(),
+            }
+        })
+    }
+}
+
+/// The operator of a manual turntable, on the terminal: instructions on stderr, Enter on stdin.
+#[derive(Debug)]
+struct TerminalOperator;
+
+impl Operator for TerminalOperator {
+    #[allow(clippy::print_stderr)]
+    fn confirm(&mut self, instruction: &str) -> std::io::Result<bool> {
+        eprint!("Please {instruction}, then press Enter (or type n and Enter to abort): ");
+        std::io::stderr().flush()?;
+        let mut line = String::new();
+        if std::io::stdin().lock().read_line(&mut line)? == 0 {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::UnexpectedEof,
+                "stdin closed",
+            ));
+        }
+        Ok(!matches!(line.trim(), "n" | "N" | "no"))
+    }
+}
+
+#[allow(clippy::print_stdout)]
+fn simulate(args: SimulateArgs, out: Output) -> anyhow::Result<()> {
+    let d = &args.drive;
+    // The simulators work in native units: GRBL axis units, Zaber microsteps.
+    let per_degree = match args.protocol {
+        SimProtocol::Grbl => 1.0 / d.degrees_per_unit,
+        SimProtocol::Zaber => d.microsteps_per_degree,
+    };
+    if !(per_degree.is_finite() && per_degree != 0.0) {
+        return Err(TurntableError::InvalidConfig {
+            field: "--degrees-per-unit/--microsteps-per-degree",
+            reason: "must be finite and non-zero".into(),
+        }
+        .into());
+    }
+    let fault = args.fault.map(|f| match f {
+        FaultArg::NoReply => Fault::NoReply,
+        FaultArg::Garbage => Fault::Garbage,
+        FaultArg::Alarm => Fault::AlarmMidMove,
+        FaultArg::LostSteps => Fault::LostSteps {
+            offset: 0.5 * per_degree,
+        },
+        FaultArg::PortClosed => Fault::PortClosed,
+    });
+    let config = SimConfig {
+        speed: args.speed_deg_s * per_degree.abs(),
+        accel: args.accel_deg_s2 * per_degree.abs(),
+        fault,
+    };
+    let (slave, handle) = match args.protocol {
+        SimProtocol::Grbl => sim::grbl_pair(
+            config,
+            GrblSim {
+                axis: d.axis,
+                homing: d.homing,
+            },
+        )?,
+        SimProtocol::Zaber => sim::zaber_pair(
+            config,
+            ZaberSim {
+                device: d.device,
+                limit_microsteps: (cubecal::turntable::MAX_ABS_DEGREES * d.microsteps_per_degree)
+                    as i64,
+            },
+        )?,
+    };
+    // Keep the slave end open for as long as we serve: with no slave open, the master reads EIO.
+    let path = slave.name().context("the pseudo-terminal has no path")?;
+    let protocol = match args.protocol {
+        SimProtocol::Grbl => "grbl",
+        SimProtocol::Zaber => "zaber",
+    };
+    if out.json {
+        println!(
+            "{}",
+            serde_json::json!({ "protocol": protocol, "port": path })
+        );
+    } else {
+        println!("{protocol} simulator on {path}");
+        println!(
+            "try: cubecal turntable probe --protocol {protocol} --port {path}  (Ctrl-C to stop)"
+        );
+    }
+    let until = args
+        .seconds
+        .map(|s| Instant::now() + Duration::from_secs(s));
+    while handle.is_running() && until.is_none_or(|u| Instant::now() < u) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    handle.stop();
+    drop(slave);
+    Ok(())
 }
