@@ -577,3 +577,86 @@ fn cli_render_writes_frames_and_ground_truth() {
         .unwrap();
     assert_eq!(out.status.code(), Some(i32::from(cubecal::exit::USAGE)));
 }
+
+/// The committed renders in `fixtures/render/` are what the commands in `fixtures/README.md` produce.
+#[test]
+fn shipped_renders_are_reproduced() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let cases: [(&str, &str, &[&str]); 2] = [
+        (
+            "cube_outside",
+            "fixtures/rigs/cube_outside.toml",
+            &["--poses", "turntable:1"],
+        ),
+        (
+            "opencv_board_9x6",
+            "fixtures/rigs/opencv_board_9x6.toml",
+            &[
+                "--poses",
+                "random:1",
+                "--seed",
+                "5",
+                "--blur",
+                "0.8",
+                "--gamma",
+                "1.8",
+                "--vignetting",
+                "0.35",
+                "--k1",
+                "-0.25",
+                "--k2",
+                "0.08",
+            ],
+        ),
+    ];
+    for (name, rig, args) in cases {
+        let dir = tempfile::tempdir().unwrap();
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_cubecal"))
+            .current_dir(root)
+            .args(["render", rig, "--out"])
+            .arg(dir.path())
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let shipped = root.join("fixtures/render").join(name);
+        let a = image::open(shipped.join("frame_000.png"))
+            .expect("fixture image")
+            .to_luma8();
+        let b = image::open(dir.path().join("frame_000.png"))
+            .unwrap()
+            .to_luma8();
+        assert_eq!(a.dimensions(), b.dimensions());
+        let worst = a
+            .pixels()
+            .zip(b.pixels())
+            .map(|(p, q)| p.0[0].abs_diff(q.0[0]))
+            .max()
+            .unwrap();
+        assert!(
+            worst <= 1,
+            "{name}: pixels differ by up to {worst} grey levels"
+        );
+        let read = |p: &Path| -> GroundTruth {
+            serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+        };
+        let (ga, gb) = (
+            read(&shipped.join("frame_000.json")),
+            read(&dir.path().join("frame_000.json")),
+        );
+        assert_eq!(ga.camera, gb.camera);
+        assert_eq!(ga.corners.len(), gb.corners.len());
+        for (x, y) in ga.corners.iter().zip(&gb.corners) {
+            assert_eq!((x.visible, x.row, x.col), (y.visible, y.row, y.col));
+            let (u, v) = (x.uv.unwrap(), y.uv.unwrap());
+            assert!(
+                (u[0] - v[0]).abs() < 1e-9 && (u[1] - v[1]).abs() < 1e-9,
+                "{name}: {x:?} vs {y:?}"
+            );
+        }
+    }
+}

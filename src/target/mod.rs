@@ -424,14 +424,11 @@ impl Rig {
         r
     }
 
-    /// The direction from which the rig is meant to be seen: the area-weighted mean of the face
-    /// normals (unit), or `+z` if they cancel.
+    /// The direction from which the rig is meant to be seen: the mean of the unit face normals
+    /// (unweighted, so that a cube with differently sized boards is seen along its diagonal), or `+z`
+    /// if they cancel.
     pub fn viewing_direction(&self) -> Vector3<f64> {
-        let mut n = Vector3::zeros();
-        for f in &self.faces {
-            let ([a0, a1], [b0, b1]) = f.board_extent();
-            n += f.normal() * ((a1 - a0) * (b1 - b0));
-        }
+        let n: Vector3<f64> = self.faces.iter().map(Face::normal).sum();
         n.try_normalize(1e-9).unwrap_or_else(Vector3::z)
     }
 }
