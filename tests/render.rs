@@ -576,6 +576,32 @@ fn cli_render_writes_frames_and_ground_truth() {
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(i32::from(cubecal::exit::USAGE)));
+    // So are out-of-range camera and effect settings.
+    for bad in [
+        ["--gamma", "0"],
+        ["--vignetting", "1.5"],
+        ["--fx=-3", "--seed=1"],
+        ["--supersample", "0"],
+        ["--noise", "nan"],
+    ] {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_cubecal"))
+            .arg("render")
+            .arg(&rig)
+            .arg("--out")
+            .arg(dir.path())
+            .args(bad)
+            .output()
+            .unwrap();
+        assert_eq!(
+            out.status.code(),
+            Some(i32::from(cubecal::exit::USAGE)),
+            "{bad:?}"
+        );
+        assert!(
+            String::from_utf8_lossy(&out.stderr).contains(bad[0].split('=').next().unwrap()),
+            "{bad:?}"
+        );
+    }
 }
 
 /// The committed renders in `fixtures/render/` are what the commands in `fixtures/README.md` produce.

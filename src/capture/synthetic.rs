@@ -13,7 +13,8 @@
 //!    coverage). Adaptive: the `(W+1) × (H+1)` pixel-corner samples are traced first; a pixel whose
 //!    3 × 3 neighbourhood of corners all hit the same surface region, and that contains no projected
 //!    feature point (inner corner, board or body vertex), is uniform and takes that value; only the
-//!    others are supersampled.
+//!    others are supersampled. (A feature thinner than the corner spacing that touches none of those
+//!    samples, such as a board seen exactly edge-on, can be missed; it has no measurable corners.)
 //! 2. **Camera effects** ([`finish`]): optional Gaussian blur (σ px), vignetting
 //!    (`1 − V·r²/r_max²` about the principal point), gamma (`value^(1/γ)`), Gaussian noise (σ grey
 //!    levels, seeded ChaCha8 with one stream per frame) and 8-bit quantisation.

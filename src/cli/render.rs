@@ -69,16 +69,16 @@ pub struct RenderArgs {
     #[arg(long, default_value = "single")]
     pub poses: PoseSpec,
     /// Image width, px.
-    #[arg(long, default_value_t = 1280)]
+    #[arg(long, default_value_t = 1280, value_parser = clap::value_parser!(u32).range(1..=20_000))]
     pub width: u32,
     /// Image height, px.
-    #[arg(long, default_value_t = 960)]
+    #[arg(long, default_value_t = 960, value_parser = clap::value_parser!(u32).range(1..=20_000))]
     pub height: u32,
     /// Focal length in x, px.
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(long, default_value_t = 1000.0, value_parser = positive)]
     pub fx: f64,
     /// Focal length in y, px.
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(long, default_value_t = 1000.0, value_parser = positive)]
     pub fy: f64,
     /// Principal point x, px (default: image centre, (width − 1)/2).
     #[arg(long)]
@@ -98,23 +98,60 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     pub k3: f64,
     /// Gaussian blur σ, px.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
     pub blur: f64,
     /// Gaussian noise σ, grey levels.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
     pub noise: f64,
     /// Gamma (output = linear^(1/G)).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = positive)]
     pub gamma: f64,
     /// Vignetting: brightness loss at the farthest image corner (0..1).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = fraction)]
     pub vignetting: f64,
     /// Seed for noise and random poses.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Sub-samples per axis for pixels near edges.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub supersample: u32,
+}
+
+fn number(s: &str) -> Result<f64, String> {
+    s.parse::<f64>()
+        .ok()
+        .filter(|v| v.is_finite())
+        .ok_or_else(|| format!("'{s}' is not a finite number"))
+}
+
+fn positive(s: &str) -> Result<f64, String> {
+    number(s).and_then(|v| {
+        if v > 0.0 {
+            Ok(v)
+        } else {
+            Err(format!("{v} must be positive"))
+        }
+    })
+}
+
+fn non_negative(s: &str) -> Result<f64, String> {
+    number(s).and_then(|v| {
+        if v >= 0.0 {
+            Ok(v)
+        } else {
+            Err(format!("{v} must be ≥ 0"))
+        }
+    })
+}
+
+fn fraction(s: &str) -> Result<f64, String> {
+    number(s).and_then(|v| {
+        if (0.0..=1.0).contains(&v) {
+            Ok(v)
+        } else {
+            Err(format!("{v} must be in 0..=1"))
+        }
+    })
 }
 
 /// One written frame, for the summary.
