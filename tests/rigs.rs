@@ -401,9 +401,18 @@ fn svg_geometry_matches_the_rig_at_physical_scale() {
         assert!(num(bar, "y") > by + num(board, "height"));
         assert!(num(bar, "x") + 100.0 <= w);
         assert!(
-            svg.contains(&format!("face '{}'", face.name))
-                && svg.contains(&format!("squares {s} mm"))
+            svg.contains(&format!("/ {}: ", face.name)) && svg.contains(&format!("squares {s} mm"))
         );
+        // The margin label lies inside the board's bottom margin.
+        let label = &svg[svg.find("id=\"margin-label\"").unwrap()..];
+        let label_y: f64 = label[label.find(" y=\"").unwrap() + 4..]
+            .split('"')
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap();
+        assert!(label_y > by + num(board, "height") - m && label_y < by + num(board, "height"));
+        assert!(label.contains(&format!("{}: {s} mm squares", face.name)));
     }
 }
 

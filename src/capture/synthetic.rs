@@ -25,7 +25,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use nalgebra::{Matrix3, Rotation3, Unit, Vector2, Vector3};
+use nalgebra::{Matrix3, Rotation3, Unit, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -993,9 +993,4 @@ impl FrameSource for SyntheticSource {
     fn flush(&mut self) -> Result<usize, CaptureError> {
         Ok(0)
     }
-}
-
-/// Pixel position of a corner in a ground truth, as a vector.
-pub fn uv_of(c: &CornerTruth) -> Option<Vector2<f64>> {
-    c.uv.map(|[u, v]| Vector2::new(u, v))
 }

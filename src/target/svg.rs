@@ -2,7 +2,8 @@
 //!
 //! The SVG's user unit is the millimetre (`width="…mm"`, `height="…mm"`, `viewBox` in mm), so printing
 //! at 100 % reproduces the rig. The page holds the board (squares plus white margin, outlined by a thin
-//! grey cut line) and, below it, a label strip with the rig and face names, the square size and a
+//! grey cut line; the face name and square size are printed small in the bottom margin when it is at
+//! least 3 mm wide) and, below it, a label strip with the rig and face names, the square size and a
 //! 100 mm scale bar for checking the printer's scale.
 //!
 //! Orientation: the board is drawn as seen from the front (from the side its normal points to).
@@ -104,17 +105,29 @@ pub fn face_svg(rig: &Rig, face: &Face) -> String {
         }
     }
     let _ = writeln!(out, "</g>");
+    // Face name and square size in the board's own bottom margin, when there is room, so that the
+    // information stays with the board after it is cut out.
+    if face.margin_mm >= 3.0 {
+        let size = (face.margin_mm * 0.5).min(4.0);
+        let _ = writeln!(
+            out,
+            r#"<text id="margin-label" x="{:.4}" y="{:.4}" font-family="sans-serif" font-size="{size:.4}" fill="dimgray">{}: {} mm squares</text>"#,
+            lay.board_x_mm + face.margin_mm,
+            lay.board_y_mm + lay.board_height_mm - (face.margin_mm - size * 0.7) / 2.0,
+            escape(&face.name),
+            s
+        );
+    }
     let text_x = PAGE_BORDER_MM;
     let line1_y = lay.board_y_mm + lay.board_height_mm + 6.0;
     let _ = writeln!(
         out,
-        r#"<text id="label" x="{text_x:.4}" y="{line1_y:.4}" font-family="sans-serif" font-size="3.5">{} / face '{}': {}×{} inner corners, squares {} mm, margin {} mm, corner (0,0) bottom left</text>"#,
+        r#"<text id="label" x="{text_x:.4}" y="{line1_y:.4}" font-family="sans-serif" font-size="3.5">{} / {}: {}×{} inner corners, squares {} mm</text>"#,
         escape(&rig.name),
         escape(&face.name),
         face.cols,
         face.rows,
-        s,
-        face.margin_mm
+        s
     );
     let bar_y = line1_y + 5.0;
     let _ = writeln!(out, r#"<g id="scale">"#);
@@ -133,7 +146,7 @@ pub fn face_svg(rig: &Rig, face: &Face) -> String {
     }
     let _ = writeln!(
         out,
-        r#"<text x="{:.4}" y="{:.4}" font-family="sans-serif" font-size="3">100 mm: check this bar with a ruler after printing at 100 %</text>"#,
+        r#"<text x="{:.4}" y="{:.4}" font-family="sans-serif" font-size="3">100 mm (check after printing at 100 %); corner (0,0) at bottom left</text>"#,
         text_x,
         bar_y + 6.0
     );
