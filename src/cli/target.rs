@@ -1,27 +1,76 @@
-//! `cubecal target ...` (being built under issue 3).
+//! `cubecal target ...`: work with rig descriptions.
 
 use clap::Subcommand;
+use cubecal::target::{Rig, svg};
 
 use super::Output;
 
 #[derive(Debug, Subcommand)]
 pub enum TargetCommand {
-    /// Write one printable SVG per face of a rig, at exact physical scale.
+    /// Write one printable SVG per face of a rig, at exact physical scale (print at 100 %, then check
+    /// the 100 mm scale bar with a ruler).
     Print {
         /// Rig description (TOML).
         rig: std::path::PathBuf,
-        /// Output directory.
+        /// Output directory (created if needed).
         #[arg(long)]
         out: std::path::PathBuf,
     },
 }
 
-pub fn run(cmd: TargetCommand, _out: Output) -> anyhow::Result<u8> {
+pub fn run(cmd: TargetCommand, out: Output) -> anyhow::Result<u8> {
     match cmd {
-        TargetCommand::Print { rig, .. } => Err(cubecal::target::TargetError::Read {
-            path: rig.display().to_string(),
-            source: std::io::Error::other("not implemented yet"),
+        TargetCommand::Print { rig, out: dir } => {
+            let (rig, warnings) = Rig::load(&rig)?;
+            let paths = svg::write_face_svgs(&rig, &dir)?;
+            print_written(&rig, &warnings, &paths, out);
+            Ok(cubecal::exit::SUCCESS)
         }
-        .into()),
+    }
+}
+
+#[allow(clippy::print_stdout)]
+fn print_written(
+    rig: &Rig,
+    warnings: &[cubecal::target::RigWarning],
+    paths: &[std::path::PathBuf],
+    out: Output,
+) {
+    if out.json {
+        let faces: Vec<_> = rig
+            .faces
+            .iter()
+            .zip(paths)
+            .map(|(f, p)| {
+                let lay = svg::PageLayout::for_face(f);
+                serde_json::json!({
+                    "face": f.name, "svg": p, "cols": f.cols, "rows": f.rows, "square_mm": f.square_mm,
+                    "page_mm": [lay.page_width_mm, lay.page_height_mm],
+                })
+            })
+            .collect();
+        let v = serde_json::json!({
+            "rig": rig.name,
+            "warnings": warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>(),
+            "faces": faces,
+        });
+        println!("{v}");
+        return;
+    }
+    for w in warnings {
+        println!("warning: {w}");
+    }
+    for (f, p) in rig.faces.iter().zip(paths) {
+        let lay = svg::PageLayout::for_face(f);
+        println!(
+            "{}: face '{}', {}×{} inner corners, {} mm squares, page {:.1} × {:.1} mm",
+            p.display(),
+            f.name,
+            f.cols,
+            f.rows,
+            f.square_mm,
+            lay.page_width_mm,
+            lay.page_height_mm
+        );
     }
 }
