@@ -22,6 +22,7 @@
 //! - [`calib`]: solvers — normalized DLT, RQ, homographies, Zhang, Levenberg–Marquardt, uncertainty.
 //! - [`target`]: rig descriptions (faces, grids, square size, 3D layout) loaded from TOML.
 //! - [`capture`]: the `FrameSource` trait; V4L2, replay of recorded sessions, synthetic rendering.
+//! - [`detect`]: corners in a grayscale frame → checkerboard grids (→ labelled correspondences).
 //! - [`synthetic`]: synthetic 2D–3D correspondences with exact ground truth (tests, benchmarks).
 //! - [`observations`]: the correspondence file format read by `cubecal solve`.
 //! - [`turntable`]: the `Turntable` trait, serial drivers and simulators.
@@ -30,6 +31,7 @@
 pub mod calib;
 pub mod camera;
 pub mod capture;
+pub mod detect;
 pub mod exit;
 pub mod observations;
 pub mod synthetic;

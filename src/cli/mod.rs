@@ -114,6 +114,12 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
         if let Some(e) = cause.downcast_ref::<cubecal::capture::CaptureError>() {
             return e.exit_code();
         }
+        if let Some(e) = cause.downcast_ref::<cubecal::capture::synthetic::SyntheticError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::detect::DetectError>() {
+            return e.exit_code();
+        }
         if let Some(e) = cause.downcast_ref::<cubecal::turntable::TurntableError>() {
             return e.exit_code();
         }

@@ -1,0 +1,251 @@
+//! Grid assembly: link X-corners into checkerboard lattices.
+//!
+//! A seed corner is linked to its nearest neighbours along its two edge directions (each neighbour's own
+//! axes must agree with the link), which fixes the lattice's column (+axis 0) and row (+axis 1)
+//! directions. The lattice then grows cell by cell: the next position along a row or column is predicted
+//! by linear extrapolation from the two previous corners (or by the parallel step of an adjacent line),
+//! and the nearest unused corner within [`CAPTURE_RADIUS`] steps of the prediction, with compatible
+//! axes, is taken. Extrapolation over one step tolerates perspective and strong lens distortion, which
+//! a global homography would not. Seeds are tried in order of decreasing response; every corner belongs
+//! to at most one grid, so several boards (faces) in one frame give several grids.
+//!
+//! Grid indices are local: which face a grid is, and where its (0, 0) corner lies, is decided later
+//! against the rig.
+
+use std::collections::HashMap;
+
+use nalgebra::Vector2;
+
+use super::XCorner;
+
+/// Largest number of corners considered (strongest first); bounds the time on cluttered frames.
+pub const MAX_CORNERS: usize = 2000;
+/// Tolerance on the angle between a link and a corner's edge direction (radians).
+pub const AXIS_TOLERANCE: f64 = 0.35;
+/// A predicted position captures a corner within this fraction of the local step.
+pub const CAPTURE_RADIUS: f64 = 0.3;
+/// Smallest grid kept: at least this many rows and columns.
+pub const MIN_LINES: usize = 3;
+
+/// A lattice of corners with local indices.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Grid {
+    pub rows: usize,
+    pub cols: usize,
+    /// Row-major `rows × cols`: index into the corner list given to [`assemble`], or `None`.
+    pub cells: Vec<Option<usize>>,
+}
+
+impl Grid {
+    pub fn get(&self, row: usize, col: usize) -> Option<usize> {
+        if row < self.rows && col < self.cols {
+            self.cells[row * self.cols + col]
+        } else {
+            None
+        }
+    }
+
+    /// Number of corners in the grid.
+    pub fn count(&self) -> usize {
+        self.cells.iter().filter(|c| c.is_some()).count()
+    }
+}
+
+/// Angle between two line directions, modulo π, in `[0, π/2]`.
+fn line_angle_diff(a: f64, b: f64) -> f64 {
+    let d = (a - b).rem_euclid(std::f64::consts::PI);
+    d.min(std::f64::consts::PI - d)
+}
+
+fn direction(d: &Vector2<f64>) -> f64 {
+    d.y.atan2(d.x).rem_euclid(std::f64::consts::PI)
+}
+
+/// Whether corner `c` has an edge line along `theta` (mod π).
+fn has_axis(c: &XCorner, theta: f64) -> bool {
+    c.axes
+        .iter()
+        .any(|&a| line_angle_diff(a, theta) < AXIS_TOLERANCE)
+}
+
+struct Builder<'a> {
+    corners: &'a [XCorner],
+    used: Vec<bool>,
+}
+
+impl Builder<'_> {
+    /// Nearest unused corner to `p` within `radius` whose axes include the direction `theta`.
+    fn nearest(
+        &self,
+        p: &Vector2<f64>,
+        radius: f64,
+        theta: f64,
+        exclude: &[usize],
+    ) -> Option<usize> {
+        let mut best: Option<(usize, f64)> = None;
+        for (i, c) in self.corners.iter().enumerate() {
+            if self.used[i] || exclude.contains(&i) {
+                continue;
+            }
+            let d = (c.uv - p).norm();
+            if d < radius && has_axis(c, theta) && best.is_none_or(|(_, bd)| d < bd) {
+                best = Some((i, d));
+            }
+        }
+        best.map(|(i, _)| i)
+    }
+
+    /// Nearest unused neighbour of `seed` along the edge direction `axis` on the side `sign`.
+    fn axis_neighbour(&self, seed: usize, axis: f64, sign: f64) -> Option<usize> {
+        let p = self.corners[seed].uv;
+        let e = Vector2::new(axis.cos(), axis.sin()) * sign;
+        let mut best: Option<(usize, f64)> = None;
+        for (i, c) in self.corners.iter().enumerate() {
+            if i == seed || self.used[i] {
+                continue;
+            }
+            let d = c.uv - p;
+            let dist = d.norm();
+            if dist < 2.0 || d.dot(&e) <= 0.0 {
+                continue;
+            }
+            let theta = direction(&d);
+            if line_angle_diff(theta, axis) < AXIS_TOLERANCE
+                && has_axis(c, theta)
+                && best.is_none_or(|(_, bd)| dist < bd)
+            {
+                best = Some((i, dist));
+            }
+        }
+        best.map(|(i, _)| i)
+    }
+
+    /// Nearest neighbour along an edge direction, on whichever side is nearer, with the side's sign.
+    fn nearer_side(&self, seed: usize, axis: f64) -> Option<(usize, f64)> {
+        let p = self.corners[seed].uv;
+        let plus = self.axis_neighbour(seed, axis, 1.0);
+        let minus = self.axis_neighbour(seed, axis, -1.0);
+        let dist = |i: usize| (self.corners[i].uv - p).norm();
+        match (plus, minus) {
+            (Some(a), Some(b)) if dist(b) < dist(a) => Some((b, -1.0)),
+            (Some(a), _) => Some((a, 1.0)),
+            (None, Some(b)) => Some((b, -1.0)),
+            (None, None) => None,
+        }
+    }
+
+    fn grow(&mut self, seed: usize) -> Option<HashMap<(i32, i32), usize>> {
+        let s = self.corners[seed];
+        let (right, sr) = self.nearer_side(seed, s.axes[0])?;
+        let (down, sd) = self.nearer_side(seed, s.axes[1])?;
+        let l0 = (self.corners[right].uv - s.uv).norm();
+        let l1 = (self.corners[down].uv - s.uv).norm();
+        if !(l0 / l1 > 0.5 && l0 / l1 < 2.0) {
+            return None;
+        }
+        // The seed cell must close: the fourth corner of the square sits where the parallelogram puts it.
+        let diagonal = self.corners[right].uv + self.corners[down].uv - s.uv;
+        let closing = self.nearest(
+            &diagonal,
+            CAPTURE_RADIUS * l0.min(l1),
+            direction(&(self.corners[right].uv - s.uv)),
+            &[seed, right, down],
+        )?;
+        let (cr, rd) = (sr as i32, sd as i32);
+        tracing::trace!(seed = ?s.uv, right = ?self.corners[right].uv, down = ?self.corners[down].uv, "grid seed");
+        let mut cells: HashMap<(i32, i32), usize> = HashMap::new();
+        cells.insert((0, 0), seed);
+        cells.insert((0, cr), right);
+        cells.insert((rd, 0), down);
+        cells.insert((rd, cr), closing);
+        let mut members = vec![seed, right, down, closing];
+        let dirs = [(0, 1), (0, -1), (1, 0), (-1, 0)];
+        loop {
+            let mut added = false;
+            let filled: Vec<((i32, i32), usize)> = cells.iter().map(|(k, v)| (*k, *v)).collect();
+            for ((r, c), idx) in filled {
+                for (dr, dc) in dirs {
+                    let target = (r + dr, c + dc);
+                    if cells.contains_key(&target) {
+                        continue;
+                    }
+                    let p = self.corners[idx].uv;
+                    let back1 = cells.get(&(r - dr, c - dc)).map(|&i| self.corners[i].uv);
+                    let back2 = cells
+                        .get(&(r - 2 * dr, c - 2 * dc))
+                        .map(|&i| self.corners[i].uv);
+                    let step = if let (Some(p1), Some(p2)) = (back1, back2) {
+                        // Quadratic extrapolation follows perspective foreshortening and lens curvature.
+                        Some(2.0 * p - 3.0 * p1 + p2)
+                    } else if let Some(p1) = back1 {
+                        Some(p - p1)
+                    } else {
+                        // Parallel step of an adjacent line.
+                        [(dc, dr), (-dc, -dr)].iter().find_map(|&(or, oc)| {
+                            let a = cells.get(&(r + or, c + oc))?;
+                            let b = cells.get(&(r + or + dr, c + oc + dc))?;
+                            Some(self.corners[*b].uv - self.corners[*a].uv)
+                        })
+                    };
+                    let Some(step) = step else { continue };
+                    let len = step.norm();
+                    if len < 2.0 {
+                        continue;
+                    }
+                    let pred = p + step;
+                    if let Some(j) =
+                        self.nearest(&pred, CAPTURE_RADIUS * len, direction(&step), &members)
+                    {
+                        cells.insert(target, j);
+                        members.push(j);
+                        added = true;
+                    }
+                }
+            }
+            if !added {
+                break;
+            }
+        }
+        Some(cells)
+    }
+}
+
+/// Link corners into grids, largest first.
+pub fn assemble(corners: &[XCorner]) -> Vec<Grid> {
+    let mut order: Vec<usize> = (0..corners.len()).collect();
+    order.sort_by(|&a, &b| corners[b].response.total_cmp(&corners[a].response));
+    order.truncate(MAX_CORNERS);
+    let kept: Vec<XCorner> = order.iter().map(|&i| corners[i]).collect();
+    let mut b = Builder {
+        corners: &kept,
+        used: vec![false; kept.len()],
+    };
+    let mut grids = Vec::new();
+    for seed in 0..kept.len() {
+        if b.used[seed] {
+            continue;
+        }
+        let Some(cells) = b.grow(seed) else { continue };
+        let (rmin, rmax, cmin, cmax) = cells.keys().fold(
+            (i32::MAX, i32::MIN, i32::MAX, i32::MIN),
+            |(a, b, c, d), &(r, cc)| (a.min(r), b.max(r), c.min(cc), d.max(cc)),
+        );
+        let rows = (rmax - rmin + 1) as usize;
+        let cols = (cmax - cmin + 1) as usize;
+        if rows < MIN_LINES || cols < MIN_LINES || cells.len() < MIN_LINES * MIN_LINES {
+            continue;
+        }
+        let mut grid_cells = vec![None; rows * cols];
+        for (&(r, c), &i) in &cells {
+            b.used[i] = true;
+            grid_cells[(r - rmin) as usize * cols + (c - cmin) as usize] = Some(order[i]);
+        }
+        grids.push(Grid {
+            rows,
+            cols,
+            cells: grid_cells,
+        });
+    }
+    grids.sort_by_key(|g| std::cmp::Reverse(g.count()));
+    grids
+}
