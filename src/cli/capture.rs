@@ -2,8 +2,8 @@
 //!
 //! ## `cubecal devices`
 //! Lists every V4L2 node that can capture video: path, driver, card, bus, USB vendor:product and serial
-//! (from sysfs), and the formats and sizes it offers (`*` marks formats cubecal can convert). `--json`
-//! prints one JSON object `{"devices": [...], "skipped": [...]}`.
+//! (from sysfs), and the formats cubecal can convert with their sizes (the others are counted). `--json`
+//! prints one JSON object `{"devices": [...], "skipped": [...]}` with every format.
 //!
 //! **Exit codes:** 0 when at least one capture device was found; **4 (`exit::DEVICE`) when there is
 //! none** — the message says so ("no V4L2 capture devices found") and, for nodes that exist but could
@@ -118,14 +118,17 @@ fn device_text(d: &DeviceInfo) -> String {
                 .join(" ")
         );
     }
-    for f in &d.formats {
+    let others = d.formats.iter().filter(|f| !f.supported).count();
+    for f in d.formats.iter().filter(|f| f.supported) {
         s += &format!(
-            "  {} {:<4} {:<28} {}\n",
-            if f.supported { "*" } else { " " },
+            "  {:<4} {:<28} {}\n",
             f.fourcc.trim_end(),
             f.description,
             sizes_text(&f.sizes)
         );
+    }
+    if others > 0 {
+        s += &format!("  (+ {others} formats cubecal cannot convert; `--json` lists all)\n");
     }
     s
 }

@@ -104,8 +104,9 @@ build() {
   export RUSTFLAGS="-C target-feature=+crt-static"
   (cd "$ROOT" && cargo build -q --locked --bin cubecal --target "$RUST_TARGET") || die "cargo build failed"
   cp "$TARGET_DIR/$RUST_TARGET/debug/cubecal" "$S/cubecal"
+  # the JSON stream also lists the cubecal binary (integration tests build it): pick the test target
   exe=$(cd "$ROOT" && cargo test -q --locked --no-run --message-format=json --target "$RUST_TARGET" --test capture_vivid |
-    sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1)
+    grep '"name":"capture_vivid"' | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1)
   [ -n "$exe" ] || die "cargo test --no-run produced no executable"
   cp "$exe" "$S/capture_vivid"
   for exe in "$S/cubecal" "$S/capture_vivid"; do
