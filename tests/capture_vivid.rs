@@ -536,3 +536,73 @@ fn vivid_unplug_mid_stream_is_a_typed_error_within_the_timeout() {
         ),
     );
 }
+
+#[test]
+#[ignore = "needs the vivid driver: run by tests/vm/run.sh"]
+fn vivid_driver_flagged_corrupt_frames_are_dropped_and_counted() {
+    let path = env_path("CUBECAL_VIVID_WEBCAM");
+    let name = path.display().to_string();
+    let cfg = V4l2Config {
+        width: Some(320),
+        height: Some(180),
+        format: Some(PixelFormat::Yuyv),
+        fps: Some(30),
+        lock: None,
+        ..V4l2Config::default()
+    };
+    let mut src = V4l2Source::open(&path, &cfg).unwrap();
+    let first = src.grab(Duration::from_secs(5)).unwrap().sequence;
+    assert_eq!(src.dropped_frames(), 0);
+    // vivid marks the next buffer with V4L2_BUF_FLAG_ERROR when this button is pressed
+    let dev = v4l::Device::with_path(&path).unwrap();
+    let inject = list_controls(&dev, &name)
+        .unwrap()
+        .into_iter()
+        .find(|c| c.name == "Inject V4L2_BUF_FLAG_ERROR")
+        .unwrap();
+    dev.set_control(v4l::control::Control {
+        id: inject.id,
+        value: v4l::control::Value::None,
+    })
+    .unwrap();
+    let mut seqs = vec![first];
+    for _ in 0..6 {
+        seqs.push(src.grab(Duration::from_secs(5)).unwrap().sequence);
+    }
+    assert_eq!(src.dropped_frames(), 1, "sequences returned: {seqs:?}");
+    // the dropped frame leaves a gap in the sequence numbers the station sees
+    assert!(seqs.windows(2).any(|w| w[1] == w[0] + 2), "{seqs:?}");
+    result(
+        "corrupt_frame_dropped",
+        true,
+        &format!("1 driver-flagged frame dropped, sequences {seqs:?}"),
+    );
+}
+
+#[test]
+#[ignore = "needs the vivid driver: run by tests/vm/run.sh"]
+fn vivid_device_in_use_is_reported_busy() {
+    let path = env_path("CUBECAL_VIVID_WEBCAM");
+    let cfg = V4l2Config {
+        width: Some(320),
+        height: Some(180),
+        format: Some(PixelFormat::Yuyv),
+        lock: None,
+        ..V4l2Config::default()
+    };
+    let mut first = V4l2Source::open(&path, &cfg).unwrap();
+    first.grab(Duration::from_secs(5)).unwrap();
+    let other = V4l2Config {
+        width: Some(640),
+        height: Some(480),
+        ..cfg
+    };
+    let second = V4l2Source::open(&path, &other);
+    let err = second.err().map(|e| (e.exit_code(), e.to_string()));
+    println!("second open while streaming: {err:?}");
+    assert!(
+        matches!(&err, Some((4, m)) if m.contains("busy")),
+        "{err:?}"
+    );
+    result("busy", true, &format!("{err:?}"));
+}
