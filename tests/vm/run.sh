@@ -102,11 +102,14 @@ build() {
   rm -rf "$S"; mkdir -p "$S"
   # explicit --target keeps +crt-static away from build scripts (bindgen runs in v4l2-sys-mit's build.rs)
   export RUSTFLAGS="-C target-feature=+crt-static"
-  (cd "$ROOT" && cargo build -q --locked --bin cubecal --target "$RUST_TARGET") || die "cargo build failed"
-  cp "$TARGET_DIR/$RUST_TARGET/debug/cubecal" "$S/cubecal"
-  # the JSON stream also lists the cubecal binary (integration tests build it): pick the test target
-  exe=$(cd "$ROOT" && cargo test -q --locked --no-run --message-format=json --target "$RUST_TARGET" --test capture_vivid |
-    grep '"name":"capture_vivid"' | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1)
+  # one build gives both executables: integration tests build the `cubecal` binary too (same profile)
+  (cd "$ROOT" && cargo test -q --locked --no-run --message-format=json --target "$RUST_TARGET" \
+    --test capture_vivid) > "$WORK/build.json" || die "cargo test --no-run failed"
+  exe=$(grep '"name":"cubecal"' "$WORK/build.json" | grep '"kind":\["bin"\]' |
+    sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1)
+  [ -n "$exe" ] || die "no cubecal executable in the build output"
+  cp "$exe" "$S/cubecal"
+  exe=$(grep '"name":"capture_vivid"' "$WORK/build.json" | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1)
   [ -n "$exe" ] || die "cargo test --no-run produced no executable"
   cp "$exe" "$S/capture_vivid"
   for exe in "$S/cubecal" "$S/capture_vivid"; do
