@@ -10,7 +10,7 @@ use cubecal::capture::session::{
     FORMAT_VERSION, MANIFEST, ReplaySource, RigRef, Session, SessionError, SessionHeader,
     SessionWriter,
 };
-use cubecal::capture::{CaptureError, Frame, FrameSource, GrayImage, SourceInfo};
+use cubecal::capture::{CaptureError, Frame, FrameSource, GrayImage, SourceInfo, check_contract};
 use cubecal::exit;
 use sha2::{Digest, Sha256};
 
@@ -209,4 +209,18 @@ fn sixteen_bit_png_frames_replay_as_high_byte() {
     let mut src = ReplaySource::open(dir.path()).unwrap();
     let fr = src.grab(Duration::ZERO).unwrap();
     assert_eq!(fr.image.get_pixel(5, 3)[0], 5);
+}
+
+#[test]
+fn replay_keeps_the_frame_source_contract() {
+    let dir = tempfile::tempdir().unwrap();
+    record(dir.path(), 6);
+    let mut src = ReplaySource::open(dir.path()).unwrap();
+    check_contract(
+        &mut src,
+        6,
+        Duration::from_millis(100),
+        Duration::from_millis(400),
+    )
+    .unwrap();
 }

@@ -21,7 +21,7 @@ use cubecal::capture::session::{ReplaySource, SessionHeader, SessionWriter};
 use cubecal::capture::v4l2::{
     self, LockSettings, V4l2Config, V4l2Output, V4l2Source, list_controls, set_control,
 };
-use cubecal::capture::{CaptureError, FrameSource, GrayImage};
+use cubecal::capture::{CaptureError, FrameSource, GrayImage, check_contract};
 
 const IGNORE: &str = "needs the vivid driver: run by tests/vm/run.sh";
 
@@ -605,4 +605,26 @@ fn vivid_device_in_use_is_reported_busy() {
         "{err:?}"
     );
     result("busy", true, &format!("{err:?}"));
+}
+
+#[test]
+#[ignore = "needs the vivid driver: run by tests/vm/run.sh"]
+fn vivid_webcam_keeps_the_frame_source_contract() {
+    let path = env_path("CUBECAL_VIVID_WEBCAM");
+    let cfg = V4l2Config {
+        width: Some(640),
+        height: Some(480),
+        format: Some(PixelFormat::Yuyv),
+        fps: Some(30),
+        ..V4l2Config::default()
+    };
+    let mut src = V4l2Source::open(&path, &cfg).unwrap();
+    check_contract(
+        &mut src,
+        10,
+        Duration::from_secs(2),
+        Duration::from_millis(500),
+    )
+    .unwrap();
+    result("contract_v4l2", true, "10 frames");
 }

@@ -162,3 +162,93 @@ pub trait FrameSource {
     /// many were dropped.
     fn flush(&mut self) -> Result<usize, CaptureError>;
 }
+
+/// A way in which a [`FrameSource`] broke the trait's contract (see [`check_contract`]).
+#[derive(Debug, thiserror::Error)]
+pub enum ContractViolation {
+    #[error("frame {index}: grab failed")]
+    Grab {
+        index: usize,
+        #[source]
+        source: CaptureError,
+    },
+    #[error("flush failed")]
+    Flush {
+        #[source]
+        source: CaptureError,
+    },
+    #[error("frame {index}: image is {got:?}, describe() says {want:?}")]
+    Size {
+        index: usize,
+        got: (u32, u32),
+        want: (u32, u32),
+    },
+    #[error("frame {index}: sequence {got} does not increase (previous {previous})")]
+    Sequence {
+        index: usize,
+        previous: u64,
+        got: u64,
+    },
+    #[error("frame {index}: timestamp {got:?} goes backwards (previous {previous:?})")]
+    Timestamp {
+        index: usize,
+        previous: Duration,
+        got: Duration,
+    },
+    #[error("grab({timeout:?}) took {took:?}")]
+    Deadline { timeout: Duration, took: Duration },
+}
+
+/// The contract every [`FrameSource`] keeps, checked over `frames` grabs: each grab returns within
+/// its timeout (plus `slack` for scheduling), frames have the size `describe()` reports, sequence numbers
+/// strictly increase, timestamps never go backwards, and `flush` succeeds between grabs. Run by the
+/// tests of every implementation (replay on the host, V4L2 against vivid in the VM test).
+pub fn check_contract(
+    src: &mut dyn FrameSource,
+    frames: usize,
+    timeout: Duration,
+    slack: Duration,
+) -> Result<(), ContractViolation> {
+    let info = src.describe();
+    let want = (info.width, info.height);
+    let mut last: Option<(u64, Duration)> = None;
+    for index in 0..frames {
+        if index == frames / 2 {
+            src.flush()
+                .map_err(|source| ContractViolation::Flush { source })?;
+        }
+        let t = std::time::Instant::now();
+        let f = src
+            .grab(timeout)
+            .map_err(|source| ContractViolation::Grab { index, source })?;
+        let took = t.elapsed();
+        if took > timeout + slack {
+            return Err(ContractViolation::Deadline { timeout, took });
+        }
+        if f.image.dimensions() != want {
+            return Err(ContractViolation::Size {
+                index,
+                got: f.image.dimensions(),
+                want,
+            });
+        }
+        if let Some((previous, previous_ts)) = last {
+            if f.sequence <= previous {
+                return Err(ContractViolation::Sequence {
+                    index,
+                    previous,
+                    got: f.sequence,
+                });
+            }
+            if f.timestamp < previous_ts {
+                return Err(ContractViolation::Timestamp {
+                    index,
+                    previous: previous_ts,
+                    got: f.timestamp,
+                });
+            }
+        }
+        last = Some((f.sequence, f.timestamp));
+    }
+    Ok(())
+}
