@@ -228,10 +228,26 @@ pub fn lock_controls(
         }
         // A value control without a requested value is pinned at its current value: writing it makes the
         // driver leave any automatic state, and the read-back records it.
-        let Some(value) = value.or(info.value) else {
-            continue;
-        };
-        locked.push(set_control(dev, device, &info, value)?);
+        match (value, info.value) {
+            // an automatic mode switched off, or a value the user asked for: failure is an error,
+            // because the camera would not be in the state the calibration assumes
+            (Some(v), _) => locked.push(set_control(dev, device, &info, v)?),
+            // pinning the current value: some drivers refuse to write a value they report (e.g.
+            // marked inactive); the value is still fixed once its automatic mode is off, so record it
+            (None, Some(current)) => match set_control(dev, device, &info, current) {
+                Ok(s) => locked.push(s),
+                Err(e) => {
+                    tracing::warn!(device, control = %info.name, current, error = %e, "could not re-write the current value; recording it as read");
+                    locked.push(ControlSetting {
+                        id: info.id,
+                        name: info.name.clone(),
+                        requested: current,
+                        accepted: current,
+                    });
+                }
+            },
+            (None, None) => {}
+        }
     }
     Ok(locked)
 }
