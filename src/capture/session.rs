@@ -1,0 +1,436 @@
+//! Recorded sessions: a directory of gray PNG frames plus `manifest.json`, and [`ReplaySource`], which
+//! plays one back as a [`FrameSource`].
+//!
+//! ## Format (version 1)
+//! ```text
+//! session/
+//!   frame_000000.png     8-bit gray (16-bit gray PNGs are accepted on replay and reduced to 8 bits)
+//!   frame_000001.png
+//!   manifest.json        written LAST, atomically (temp file + rename)
+//! ```
+//! The manifest holds the source (identity, name, size, format), optional device details and the
+//! negotiated capture format, the control values the driver accepted, the rig (optional path/name),
+//! free-form config, and per frame: file name, sequence, timestamp (ns), optional turntable angle and
+//! the SHA-256 of the PNG file's bytes.
+//!
+//! Because the manifest is written last, a session whose recording was interrupted has no manifest and
+//! is refused ([`SessionError::NoManifest`]); a frame file that is missing, or whose bytes do not match
+//! the checksum (truncated, edited), is refused naming that file. [`Session::open`] verifies every frame
+//! up front, so a replay never fails half-way through because of a damaged file.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use sha2::{Digest, Sha256};
+
+use super::v4l2::{ControlSetting, DeviceInfo, Negotiated};
+use super::{CaptureError, Frame, FrameSource, GrayImage, SourceInfo};
+
+/// Name of the manifest inside a session directory.
+pub const MANIFEST: &str = "manifest.json";
+/// The manifest format this version reads and writes.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Errors reading or writing a session. Every variant names the file or directory concerned.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    #[error(
+        "{dir}: no {MANIFEST}; the recording is incomplete (the manifest is written last) or this is not a session directory"
+    )]
+    NoManifest { dir: PathBuf },
+    #[error("cannot read {path}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: not a valid session manifest (truncated or edited?)")]
+    Manifest {
+        path: PathBuf,
+        #[source]
+        source: serde_json::Error,
+    },
+    #[error("{path}: manifest format version {found}, this cubecal reads version {supported}")]
+    Version {
+        path: PathBuf,
+        found: u32,
+        supported: u32,
+    },
+    #[error("{path}: {reason}")]
+    Invalid { path: PathBuf, reason: String },
+    #[error("{path}: frame file listed in the manifest is missing")]
+    MissingFrame { path: PathBuf },
+    #[error(
+        "{path}: checksum mismatch (manifest sha256 {expected}, file {actual}); the frame was altered or truncated"
+    )]
+    Checksum {
+        path: PathBuf,
+        expected: String,
+        actual: String,
+    },
+    #[error("{path}: cannot decode PNG frame")]
+    Decode {
+        path: PathBuf,
+        #[source]
+        source: image::ImageError,
+    },
+    #[error("{dir}: already contains a session ({MANIFEST}); choose another output directory")]
+    Exists { dir: PathBuf },
+    #[error("cannot write {path}")]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot encode frame {path}")]
+    Encode {
+        path: PathBuf,
+        #[source]
+        source: image::ImageError,
+    },
+}
+
+impl SessionError {
+    /// Every session problem is bad input (or an unusable output directory): [`crate::exit::BAD_INPUT`].
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            SessionError::NoManifest { .. }
+            | SessionError::Read { .. }
+            | SessionError::Manifest { .. }
+            | SessionError::Version { .. }
+            | SessionError::Invalid { .. }
+            | SessionError::MissingFrame { .. }
+            | SessionError::Checksum { .. }
+            | SessionError::Decode { .. }
+            | SessionError::Exists { .. }
+            | SessionError::Write { .. }
+            | SessionError::Encode { .. } => crate::exit::BAD_INPUT,
+        }
+    }
+}
+
+/// The rig a session was recorded with.
+#[derive(Debug, Clone, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+pub struct RigRef {
+    pub path: Option<PathBuf>,
+    pub name: Option<String>,
+}
+
+/// One recorded frame.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FrameEntry {
+    /// File name inside the session directory (no directories).
+    pub file: String,
+    pub sequence: u64,
+    pub timestamp_ns: u64,
+    /// Turntable angle in degrees when the frame was taken.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub angle_deg: Option<f64>,
+    /// Lower-case hex SHA-256 of the PNG file's bytes.
+    pub sha256: String,
+}
+
+/// Everything known about a session except its frames.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SessionHeader {
+    pub source: SourceInfo,
+    /// Device identity and formats when recorded from a V4L2 camera.
+    #[serde(default)]
+    pub device: Option<DeviceInfo>,
+    /// The capture format the driver agreed to.
+    #[serde(default)]
+    pub capture: Option<Negotiated>,
+    /// Locked control values, as accepted by the driver.
+    #[serde(default)]
+    pub controls: Vec<ControlSetting>,
+    #[serde(default)]
+    pub rig: Option<RigRef>,
+    /// The configuration used (free-form JSON, e.g. the station config).
+    #[serde(default)]
+    pub config: serde_json::Value,
+}
+
+/// The manifest file.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Manifest {
+    pub format_version: u32,
+    #[serde(flatten)]
+    pub header: SessionHeader,
+    pub frames: Vec<FrameEntry>,
+}
+
+fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Writes a session: frames as they come, the manifest last.
+#[derive(Debug)]
+pub struct SessionWriter {
+    dir: PathBuf,
+    header: SessionHeader,
+    frames: Vec<FrameEntry>,
+}
+
+impl SessionWriter {
+    /// Create (or reuse an existing directory without a manifest) `dir` for a new session.
+    pub fn create(dir: &Path, header: SessionHeader) -> Result<SessionWriter, SessionError> {
+        if dir.join(MANIFEST).exists() {
+            return Err(SessionError::Exists {
+                dir: dir.to_path_buf(),
+            });
+        }
+        std::fs::create_dir_all(dir).map_err(|e| SessionError::Write {
+            path: dir.to_path_buf(),
+            source: e,
+        })?;
+        Ok(SessionWriter {
+            dir: dir.to_path_buf(),
+            header,
+            frames: Vec::new(),
+        })
+    }
+
+    /// Write one frame as PNG and remember its checksum.
+    pub fn add_frame(&mut self, frame: &Frame, angle_deg: Option<f64>) -> Result<(), SessionError> {
+        let file = format!("frame_{:06}.png", self.frames.len());
+        let path = self.dir.join(&file);
+        let mut png = Vec::new();
+        frame
+            .image
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .map_err(|e| SessionError::Encode {
+                path: path.clone(),
+                source: e,
+            })?;
+        std::fs::write(&path, &png).map_err(|e| SessionError::Write {
+            path: path.clone(),
+            source: e,
+        })?;
+        self.frames.push(FrameEntry {
+            file,
+            sequence: frame.sequence,
+            timestamp_ns: u64::try_from(frame.timestamp.as_nanos()).unwrap_or(u64::MAX),
+            angle_deg,
+            sha256: sha256_hex(&png),
+        });
+        Ok(())
+    }
+
+    pub fn frame_count(&self) -> usize {
+        self.frames.len()
+    }
+
+    /// Write the manifest atomically (temp file in the directory, fsync, rename) and return its path.
+    pub fn finish(self) -> Result<PathBuf, SessionError> {
+        let path = self.dir.join(MANIFEST);
+        let manifest = Manifest {
+            format_version: FORMAT_VERSION,
+            header: self.header,
+            frames: self.frames,
+        };
+        let json = serde_json::to_vec_pretty(&manifest).map_err(|e| SessionError::Write {
+            path: path.clone(),
+            source: e.into(),
+        })?;
+        let werr = |e: std::io::Error| SessionError::Write {
+            path: path.clone(),
+            source: e,
+        };
+        let mut tmp = tempfile::NamedTempFile::new_in(&self.dir).map_err(werr)?;
+        tmp.write_all(&json).map_err(werr)?;
+        tmp.as_file().sync_all().map_err(werr)?;
+        tmp.persist(&path).map_err(|e| werr(e.error))?;
+        Ok(path)
+    }
+}
+
+/// A session read from disk, its manifest parsed and every frame verified.
+#[derive(Debug, Clone)]
+pub struct Session {
+    pub dir: PathBuf,
+    pub manifest: Manifest,
+}
+
+impl Session {
+    /// Read and verify a session: the manifest exists and parses, every frame file exists and matches
+    /// its checksum.
+    pub fn open(dir: &Path) -> Result<Session, SessionError> {
+        let path = dir.join(MANIFEST);
+        let bytes = match std::fs::read(&path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(SessionError::NoManifest {
+                    dir: dir.to_path_buf(),
+                });
+            }
+            Err(e) => return Err(SessionError::Read { path, source: e }),
+        };
+        // check the version before the full parse, so that a newer format says so
+        #[derive(serde::Deserialize)]
+        struct Version {
+            format_version: u32,
+        }
+        if let Ok(v) = serde_json::from_slice::<Version>(&bytes)
+            && v.format_version != FORMAT_VERSION
+        {
+            return Err(SessionError::Version {
+                path,
+                found: v.format_version,
+                supported: FORMAT_VERSION,
+            });
+        }
+        let manifest: Manifest =
+            serde_json::from_slice(&bytes).map_err(|e| SessionError::Manifest {
+                path: path.clone(),
+                source: e,
+            })?;
+        let session = Session {
+            dir: dir.to_path_buf(),
+            manifest,
+        };
+        for (i, f) in session.manifest.frames.iter().enumerate() {
+            let plain = Path::new(&f.file)
+                .file_name()
+                .is_some_and(|n| n == std::ffi::OsStr::new(&f.file));
+            if !plain {
+                return Err(SessionError::Invalid {
+                    path: path.clone(),
+                    reason: format!("frames[{i}].file {:?} is not a plain file name", f.file),
+                });
+            }
+            session.read_verified(i)?;
+        }
+        Ok(session)
+    }
+
+    /// Number of frames.
+    pub fn len(&self) -> usize {
+        self.manifest.frames.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.manifest.frames.is_empty()
+    }
+
+    /// The bytes of frame `i`, verified against the manifest checksum.
+    fn read_verified(&self, i: usize) -> Result<Vec<u8>, SessionError> {
+        let entry = &self.manifest.frames[i];
+        let path = self.dir.join(&entry.file);
+        let bytes = match std::fs::read(&path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(SessionError::MissingFrame { path });
+            }
+            Err(e) => return Err(SessionError::Read { path, source: e }),
+        };
+        let actual = sha256_hex(&bytes);
+        if !actual.eq_ignore_ascii_case(&entry.sha256) {
+            return Err(SessionError::Checksum {
+                path,
+                expected: entry.sha256.clone(),
+                actual,
+            });
+        }
+        Ok(bytes)
+    }
+
+    /// Decode frame `i` (verified) to an 8-bit gray frame.
+    pub fn frame(&self, i: usize) -> Result<Frame, SessionError> {
+        let entry = &self.manifest.frames[i];
+        let path = self.dir.join(&entry.file);
+        let bytes = self.read_verified(i)?;
+        let img =
+            image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).map_err(|e| {
+                SessionError::Decode {
+                    path: path.clone(),
+                    source: e,
+                }
+            })?;
+        let image: GrayImage = match img {
+            image::DynamicImage::ImageLuma8(g) => g,
+            image::DynamicImage::ImageLuma16(g) => {
+                let (w, h) = g.dimensions();
+                GrayImage::from_fn(w, h, |x, y| {
+                    image::Luma([(g.get_pixel(x, y)[0] >> 8) as u8])
+                })
+            }
+            _ => {
+                return Err(SessionError::Invalid {
+                    path,
+                    reason: "frame is not a gray PNG".into(),
+                });
+            }
+        };
+        let src = &self.manifest.header.source;
+        if image.dimensions() != (src.width, src.height) {
+            return Err(SessionError::Invalid {
+                path,
+                reason: format!(
+                    "frame is {}x{}, the manifest says {}x{}",
+                    image.width(),
+                    image.height(),
+                    src.width,
+                    src.height
+                ),
+            });
+        }
+        Ok(Frame {
+            sequence: entry.sequence,
+            timestamp: Duration::from_nanos(entry.timestamp_ns),
+            image,
+        })
+    }
+}
+
+/// Plays a recorded session back, frame by frame, then [`CaptureError::EndOfStream`].
+#[derive(Debug)]
+pub struct ReplaySource {
+    session: Session,
+    next: usize,
+}
+
+impl ReplaySource {
+    /// Open and verify the session in `dir`.
+    pub fn open(dir: &Path) -> Result<ReplaySource, CaptureError> {
+        Ok(ReplaySource {
+            session: Session::open(dir)?,
+            next: 0,
+        })
+    }
+
+    pub fn session(&self) -> &Session {
+        &self.session
+    }
+
+    /// The manifest entry of the frame the next `grab` returns.
+    pub fn peek(&self) -> Option<&FrameEntry> {
+        self.session.manifest.frames.get(self.next)
+    }
+}
+
+impl FrameSource for ReplaySource {
+    fn describe(&self) -> SourceInfo {
+        self.session.manifest.header.source.clone()
+    }
+
+    /// Returns the next recorded frame immediately (a recording never makes you wait).
+    fn grab(&mut self, _timeout: Duration) -> Result<Frame, CaptureError> {
+        if self.next >= self.session.len() {
+            return Err(CaptureError::EndOfStream {
+                source_name: self.session.dir.display().to_string(),
+            });
+        }
+        let frame = self.session.frame(self.next)?;
+        self.next += 1;
+        Ok(frame)
+    }
+
+    /// A recording has no frames queued behind the station's back: nothing to drop.
+    fn flush(&mut self) -> Result<usize, CaptureError> {
+        Ok(0)
+    }
+}
