@@ -69,16 +69,21 @@ pub fn normalize_3d(points: &[Vector3<f64>]) -> Result<Matrix4<f64>, CalibError>
     Ok(u)
 }
 
+/// Centroid and scatter matrix `Σ (p − c)(p − c)ᵀ` of a point set.
+fn centroid_scatter(points: &[Vector3<f64>]) -> (Vector3<f64>, Matrix3<f64>) {
+    let n = points.len().max(1) as f64;
+    let c = points.iter().fold(Vector3::zeros(), |a, p| a + p) / n;
+    let s = points.iter().fold(Matrix3::zeros(), |s, p| {
+        let d = p - c;
+        s + d * d.transpose()
+    });
+    (c, s)
+}
+
 /// Thickness of a 3D point set relative to its extent: √(λ_min/λ_max) of its scatter matrix.
 /// Zero for coplanar points.
 pub fn relative_thickness(points: &[Vector3<f64>]) -> f64 {
-    let n = points.len().max(1) as f64;
-    let c = points.iter().fold(Vector3::zeros(), |a, p| a + p) / n;
-    let mut s = Matrix3::zeros();
-    for p in points {
-        let d = p - c;
-        s += d * d.transpose();
-    }
+    let (_, s) = centroid_scatter(points);
     let eig = s.symmetric_eigenvalues();
     let max = eig.max();
     let min = eig.min().max(0.0);
@@ -87,13 +92,7 @@ pub fn relative_thickness(points: &[Vector3<f64>]) -> f64 {
 
 /// A rigid frame for a planar point set: `plane_from_rig` maps the points to `z ≈ 0`.
 pub fn plane_frame(points: &[Vector3<f64>]) -> Pose {
-    let n = points.len().max(1) as f64;
-    let c = points.iter().fold(Vector3::zeros(), |a, p| a + p) / n;
-    let mut s = Matrix3::zeros();
-    for p in points {
-        let d = p - c;
-        s += d * d.transpose();
-    }
+    let (c, s) = centroid_scatter(points);
     let eig = s.symmetric_eigen();
     // Columns sorted by decreasing eigenvalue: in-plane axes first, normal last.
     let mut order = [0usize, 1, 2];
