@@ -104,7 +104,7 @@ build() {
   export RUSTFLAGS="-C target-feature=+crt-static"
   # one build gives both executables: integration tests build the `cubecal` binary too (same profile)
   (cd "$ROOT" && cargo test -q --locked --no-run --message-format=json --target "$RUST_TARGET" \
-    --test capture_vivid) > "$WORK/build.json" || die "cargo test --no-run failed"
+    --profile vmtest --test capture_vivid) > "$WORK/build.json" || die "cargo test --no-run failed"
   exe=$(grep '"name":"cubecal"' "$WORK/build.json" | grep '"kind":\["bin"\]' |
     sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1)
   [ -n "$exe" ] || die "no cubecal executable in the build output"
