@@ -9,6 +9,7 @@
 //! - `CUBECAL_VIVID_HDMI_CAP` / `CUBECAL_VIVID_HDMI_OUT`: vivid HDMI capture + output (loop_video)
 //! - `CUBECAL_VIVID_UNPLUG`: a second webcam node, disconnected by the unplug test
 //! - `CUBECAL_VM_OUT` (optional): directory for evidence (captured PNGs)
+//! - `CUBECAL_VM_RENDER`: a host-rendered rig frame (`frame_000.png`/`.json`) and its `rig.toml`
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stdout)]
 
 use std::path::PathBuf;
@@ -666,4 +667,104 @@ fn vivid_webcam_keeps_the_frame_source_contract() {
     )
     .unwrap();
     result("contract_v4l2", true, "10 frames");
+}
+
+/// A frame of the cube rig rendered on the host by `cubecal render` (tests/vm/run.sh puts it, its
+/// ground truth and the rig in `CUBECAL_VM_RENDER`) goes out through vivid's HDMI output, comes back
+/// through `V4l2Source`, and the detector labels its faces against the rig: every labelled corner must
+/// match its ground-truth position and every face must be found.
+#[test]
+#[ignore = "needs the vivid driver: run by tests/vm/run.sh"]
+fn vivid_loop_rendered_rig_is_detected_against_ground_truth() {
+    let dir = env_path("CUBECAL_VM_RENDER");
+    let (rig, _) = cubecal::target::Rig::load(&dir.join("rig.toml")).unwrap();
+    let rendered = image::open(dir.join("frame_000.png")).unwrap().to_luma8();
+    let gt: cubecal::capture::synthetic::GroundTruth =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("frame_000.json")).unwrap())
+            .unwrap();
+    let cap_path = env_path("CUBECAL_VIVID_HDMI_CAP");
+    let out_path = env_path("CUBECAL_VIVID_HDMI_OUT");
+    {
+        let dev = v4l::Device::with_path(&cap_path).unwrap();
+        let name = cap_path.display().to_string();
+        assert_eq!(set_named(&dev, &name, "Loop Video", 1), 1);
+        assert_eq!(set_named(&dev, &name, "OSD Text Mode", 2), 2);
+    }
+    let format = PixelFormat::Grey;
+    let cfg = V4l2Config {
+        format: Some(format),
+        buffers: 4,
+        lock: None,
+        ..V4l2Config::default()
+    };
+    let mut src = V4l2Source::open(&cap_path, &cfg).unwrap();
+    let n = src.negotiated();
+    assert_eq!(
+        (n.width, n.height),
+        rendered.dimensions(),
+        "render size must match vivid's HDMI loop size"
+    );
+    let mut out = V4l2Output::open(&out_path, format, n.width, n.height, 4).unwrap();
+    let raw = encode_gray(format, &rendered, out.negotiated().stride as usize).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let writer = {
+        let stop = stop.clone();
+        std::thread::spawn(move || -> Result<(), CaptureError> {
+            while !stop.load(Ordering::Relaxed) {
+                out.write(&raw, Duration::from_secs(2))?;
+            }
+            Ok(())
+        })
+    };
+    let mut captured = None;
+    for _ in 0..30 {
+        let f = src.grab(Duration::from_secs(5)).unwrap();
+        if f.image == rendered {
+            captured = Some(f.image);
+            break;
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    writer.join().unwrap().unwrap();
+    let captured = captured.expect("no captured frame equals the rendered frame");
+    let mut finder = cubecal::detect::CornerFinder::new().unwrap();
+    let det = cubecal::detect::detect(&mut finder, &captured, &rig).unwrap();
+    let truth: std::collections::HashMap<(usize, usize, usize), [f64; 2]> = gt
+        .visible()
+        .filter_map(|c| Some(((c.face_index, c.row, c.col), c.uv?)))
+        .collect();
+    let (mut sq, mut count, mut worst, mut mislabelled) = (0.0, 0usize, 0.0f64, 0usize);
+    for face in &det.faces {
+        for c in &face.corners {
+            match truth.get(&(face.face, c.row, c.col)) {
+                Some(t) => {
+                    let e = ((c.uv.x - t[0]).powi(2) + (c.uv.y - t[1]).powi(2)).sqrt();
+                    if e > 1.0 {
+                        mislabelled += 1;
+                    }
+                    sq += e * e;
+                    count += 1;
+                    worst = worst.max(e);
+                }
+                None => mislabelled += 1,
+            }
+        }
+    }
+    let rms = (sq / count.max(1) as f64).sqrt();
+    let ok = det.faces.len() == rig.faces.len()
+        && mislabelled == 0
+        && count == truth.len()
+        && rms < 0.05;
+    result(
+        "loop_rendered_rig_detected",
+        ok,
+        &format!(
+            "{} of {} faces, {count} of {} corners labelled, RMS {rms:.4} px, max {worst:.4} px, mislabelled {mislabelled}, rejected {:?}",
+            det.faces.len(),
+            rig.faces.len(),
+            truth.len(),
+            det.rejected
+        ),
+    );
+    assert!(ok);
 }

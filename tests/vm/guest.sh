@@ -10,7 +10,8 @@ modprobe vivid n_devs=3 node_types=0x1,0x101,0x1 num_inputs=1,1,1 input_types=0x
 ls -l /dev/video*
 mkdir -p out
 export CUBECAL_VIVID_WEBCAM=/dev/video0 CUBECAL_VIVID_HDMI_CAP=/dev/video1 \
-  CUBECAL_VIVID_HDMI_OUT=/dev/video2 CUBECAL_VIVID_UNPLUG=/dev/video3 CUBECAL_VM_OUT=/mnt/host/out
+  CUBECAL_VIVID_HDMI_OUT=/dev/video2 CUBECAL_VIVID_UNPLUG=/dev/video3 CUBECAL_VM_OUT=/mnt/host/out \
+  CUBECAL_VM_RENDER=/mnt/host/render
 
 echo "== cubecal devices (the real binary)"
 ./cubecal devices; r=$?

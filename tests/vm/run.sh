@@ -14,7 +14,7 @@
 #
 # usage: tests/vm/run.sh [all|prepare|build|boot]     (default: all)
 # env:   CUBECAL_VM_WORK (default $CARGO_TARGET_DIR/vm or ./target/vm)  scratch + cache directory
-#        KVER (default: whatever linux-image-amd64 depends on)  VM_TIMEOUT=180 (guest watchdog, s)
+#        KVER (default: whatever linux-image-amd64 depends on)  VM_TIMEOUT=300 (guest watchdog, s)
 #        ACCEL=tcg (kvm only on hosts with real hardware KVM)
 # Background and measurements: /work/shared/reference/v4l2-vm/README.md (vivid loop, pitfalls).
 set -euo pipefail
@@ -23,7 +23,7 @@ ROOT=$(cd "$HERE/../.." && pwd)
 TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target}
 WORK=${CUBECAL_VM_WORK:-$TARGET_DIR/vm}
 ACCEL=${ACCEL:-tcg}
-VM_TIMEOUT=${VM_TIMEOUT:-180}
+VM_TIMEOUT=${VM_TIMEOUT:-300}
 RUST_TARGET=x86_64-unknown-linux-gnu
 export DEBIAN_FRONTEND=noninteractive
 mkdir -p "$WORK"
@@ -115,6 +115,12 @@ build() {
   for exe in "$S/cubecal" "$S/capture_vivid"; do
     if readelf -d "$exe" 2>/dev/null | grep -q NEEDED; then die "$exe is not statically linked"; fi
   done
+  # a rendered rig with ground truth for the loop test, made on the host by the same (static) binary,
+  # at the size of vivid's HDMI loop
+  mkdir -p "$S/render"
+  "$S/cubecal" render "$ROOT/fixtures/rigs/cube_outside.toml" --out "$S/render" --width 1280 --height 720 \
+    --blur 0.8 --noise 1 --seed 3 > "$WORK/render.log" 2>&1 || die "cubecal render failed (see $WORK/render.log)"
+  cp "$ROOT/fixtures/rigs/cube_outside.toml" "$S/render/rig.toml"
   cp "$HERE/guest.sh" "$S/run.sh"; chmod +x "$S/run.sh"
 }
 
