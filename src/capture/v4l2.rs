@@ -440,14 +440,7 @@ impl V4l2Output {
         height: u32,
         buffers: u32,
     ) -> Result<V4l2Output, CaptureError> {
-        let name = path.display().to_string();
-        let dev = Device::with_path(path).map_err(|e| CaptureError::Open {
-            device: name.clone(),
-            source: e,
-        })?;
-        let caps = dev
-            .query_caps()
-            .map_err(|e| CaptureError::from_io(&name, "VIDIOC_QUERYCAP", e))?;
+        let (name, dev, caps) = discover::open_device(path)?;
         if !caps.capabilities.contains(Flags::VIDEO_OUTPUT) {
             return Err(CaptureError::Unsupported {
                 device: name,

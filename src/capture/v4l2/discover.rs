@@ -136,8 +136,10 @@ pub fn discover() -> (Vec<DeviceInfo>, Vec<SkippedNode>) {
     (found, skipped)
 }
 
-/// Inspect one node; `Ok(None)` when it cannot capture single-planar video.
-pub fn inspect(path: &Path) -> Result<Option<DeviceInfo>, CaptureError> {
+/// Open a device node and query its capabilities; errors name the node.
+pub(crate) fn open_device(
+    path: &Path,
+) -> Result<(String, Device, v4l::capability::Capabilities), CaptureError> {
     let name = path.display().to_string();
     let dev = Device::with_path(path).map_err(|e| CaptureError::Open {
         device: name.clone(),
@@ -146,6 +148,12 @@ pub fn inspect(path: &Path) -> Result<Option<DeviceInfo>, CaptureError> {
     let caps = dev
         .query_caps()
         .map_err(|e| CaptureError::from_io(&name, "VIDIOC_QUERYCAP", e))?;
+    Ok((name, dev, caps))
+}
+
+/// Inspect one node; `Ok(None)` when it cannot capture single-planar video.
+pub fn inspect(path: &Path) -> Result<Option<DeviceInfo>, CaptureError> {
+    let (name, dev, caps) = open_device(path)?;
     if !caps.capabilities.contains(Flags::VIDEO_CAPTURE) {
         return Ok(None);
     }
