@@ -18,8 +18,8 @@
 use image::GrayImage;
 use nalgebra::{Vector2, Vector3};
 
-use super::XCorner;
-use super::grid::Grid;
+use super::complete::Completed;
+use super::grid::MIN_LINES;
 use crate::calib::linear::{COPLANAR_TOLERANCE, dlt, relative_thickness};
 use crate::target::{Rig, SquareColour};
 
@@ -36,6 +36,8 @@ pub struct LabelledCorner {
     pub col: usize,
     pub xyz: Vector3<f64>,
     pub uv: Vector2<f64>,
+    /// Estimated standard deviation of each coordinate of `uv` (px), from the refinement fit.
+    pub sigma_px: f64,
 }
 
 /// A face found in the frame.
@@ -84,12 +86,13 @@ fn mean_square_intensity(img: &GrayImage, quad: [Vector2<f64>; 4]) -> Option<f64
     Some(sum / (n + 1.0))
 }
 
-/// A complete grid as a dense `rows × cols` array of image points, handedness-corrected.
+/// A complete grid as a dense `rows × cols` array of image points (with their σ), handedness-corrected.
 #[derive(Debug, Clone)]
 struct Dense {
     rows: usize,
     cols: usize,
     uv: Vec<Vector2<f64>>,
+    sigma: Vec<f64>,
 }
 
 impl Dense {
@@ -97,30 +100,37 @@ impl Dense {
         self.uv[r * self.cols + c]
     }
 
-    fn transposed(&self) -> Dense {
+    /// A `rows × cols` grid whose cell (r, c) is this grid's `source(r, c)`.
+    fn remapped(
+        &self,
+        rows: usize,
+        cols: usize,
+        source: impl Fn(usize, usize) -> (usize, usize),
+    ) -> Dense {
         let mut uv = Vec::with_capacity(self.uv.len());
-        for c in 0..self.cols {
-            for r in 0..self.rows {
-                uv.push(self.at(r, c));
+        let mut sigma = Vec::with_capacity(self.uv.len());
+        for r in 0..rows {
+            for c in 0..cols {
+                let (r0, c0) = source(r, c);
+                uv.push(self.uv[r0 * self.cols + c0]);
+                sigma.push(self.sigma[r0 * self.cols + c0]);
             }
         }
         Dense {
-            rows: self.cols,
-            cols: self.rows,
+            rows,
+            cols,
             uv,
+            sigma,
         }
     }
 
-    /// Rotate the labelling by a quarter turn (keeps handedness): new (r, c) = old (c, rows − 1 − r)…
+    fn transposed(&self) -> Dense {
+        self.remapped(self.cols, self.rows, |r, c| (c, r))
+    }
+
+    /// Rotate the labelling by a quarter turn (keeps handedness): new (r, c) = old (rows − 1 − c, r).
     fn quarter_turn(&self) -> Dense {
-        let (rows, cols) = (self.cols, self.rows);
-        let mut uv = Vec::with_capacity(self.uv.len());
-        for r in 0..rows {
-            for c in 0..cols {
-                uv.push(self.at(self.rows - 1 - c, r));
-            }
-        }
-        Dense { rows, cols, uv }
+        self.remapped(self.cols, self.rows, |r, c| (self.rows - 1 - c, r))
     }
 
     fn turned(&self, turns: u8) -> Dense {
@@ -150,13 +160,12 @@ impl Dense {
 pub fn label(
     img: &GrayImage,
     rig: &Rig,
-    corners: &[XCorner],
-    grids: &[Grid],
+    grids: &[Completed],
 ) -> (Vec<FaceDetection>, Vec<Rejection>) {
     let mut rejected = Vec::new();
     let mut found: Vec<(FaceDetection, Dense, Mapping)> = Vec::new();
     for g in grids {
-        if g.count() != g.rows * g.cols {
+        if g.count() != g.rows * g.cols || g.rows < MIN_LINES || g.cols < MIN_LINES {
             rejected.push(Rejection {
                 reason: format!(
                     "incomplete grid ({} of {}×{} corners): partially visible faces are not labelled",
@@ -170,7 +179,8 @@ pub fn label(
         let mut dense = Dense {
             rows: g.rows,
             cols: g.cols,
-            uv: g.cells.iter().flatten().map(|&i| corners[i].uv).collect(),
+            uv: g.cells.iter().flatten().map(|f| f.uv).collect(),
+            sigma: g.cells.iter().flatten().map(|f| f.sigma_px).collect(),
         };
         if dense.handedness() > 0.0 {
             dense = dense.transposed();
@@ -283,17 +293,19 @@ pub fn label(
             });
             continue;
         }
+        let corners = (0..d.rows)
+            .flat_map(|r| (0..d.cols).map(move |c| (r, c)))
+            .map(|(r, c)| LabelledCorner {
+                row: r,
+                col: c,
+                xyz: face.corner_xyz(r, c),
+                uv: d.at(r, c),
+                sigma_px: d.sigma[r * d.cols + c],
+            })
+            .collect();
         let det = FaceDetection {
             face: mapping.face,
-            corners: (0..d.rows)
-                .flat_map(|r| (0..d.cols).map(move |c| (r, c)))
-                .map(|(r, c)| LabelledCorner {
-                    row: r,
-                    col: c,
-                    xyz: face.corner_xyz(r, c),
-                    uv: d.at(r, c),
-                })
-                .collect(),
+            corners,
             colour_contrast: contrast,
         };
         found.push((det, d, mapping));

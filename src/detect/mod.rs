@@ -1,5 +1,5 @@
-//! Corner detection: grayscale frame → X-corners → checkerboard grids (→ labelled rig correspondences,
-//! in progress).
+//! Corner detection: grayscale frame → X-corners → checkerboard grids → fitted, completed grids →
+//! labelled rig correspondences with a per-corner σ.
 //!
 //! ## Front end: `chess-corners`
 //! X-corners come from the `chess-corners` crate (two-level ChESS pyramid, saddle-point sub-pixel
@@ -10,14 +10,21 @@
 //! single-scale path panics on tiny images (frames under [`MIN_SIDE`] pixels are rejected first) and
 //! the default refiner radius 2 drops real corners on JPEG images.
 //!
-//! ## Grid assembly (ours)
-//! See [`grid`]: corners are linked into a lattice by growing from seeds along their local axes.
+//! ## Grid assembly, fitting and completion (ours)
+//! [`grid`] links corners into a lattice by growing from seeds along their local axes. [`complete`]
+//! fits every lattice corner with the X-junction model of [`refine`] (window shaped by the lattice,
+//! per-corner σ from the fit) and recovers the corners the front end missed where the lattice
+//! predicts them. [`label`] decides which face each grid is, never guessing; [`score`] measures all of
+//! this against the ground truth of synthetic renders.
 
 use image::GrayImage;
 use nalgebra::Vector2;
 
+pub mod complete;
 pub mod grid;
 pub mod label;
+pub mod refine;
+pub mod score;
 
 /// ChESS response floor. The crate's default (30) loses most corners of foreshortened, low-contrast
 /// faces (squares of ~15–25 px seen at 60°+); false corners this lets through are removed by grid
@@ -165,7 +172,17 @@ pub fn detect(
 ) -> Result<FrameDetection, DetectError> {
     let corners = finder.find(img)?;
     let grids = grid::assemble(&corners);
-    let (faces, mut rejected) = label::label(img, rig, &corners, &grids);
+    let max_lines = rig
+        .faces
+        .iter()
+        .map(|f| f.rows.max(f.cols))
+        .max()
+        .unwrap_or(0);
+    let completed: Vec<complete::Completed> = grids
+        .iter()
+        .map(|g| complete::complete(img, &corners, g, max_lines))
+        .collect();
+    let (faces, mut rejected) = label::label(img, rig, &completed);
     if grids.is_empty() {
         rejected.push(label::Rejection {
             reason: format!(

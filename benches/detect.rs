@@ -1,0 +1,82 @@
+//! Detector benchmark: `cargo bench --bench detect`. Release build, one thread. Prints the median and
+//! spread of `detect::detect` (front end, grids, labelling, sub-pixel fits) on rendered frames of the
+//! cube rig at 1280×960 and 1920×1080 (three faces, blur σ 1, noise σ 2), and on frames with no target
+//! (mid grey, and pure noise), which must be rejected quickly.
+#![allow(clippy::print_stdout, clippy::unwrap_used)]
+
+use std::time::{Duration, Instant};
+
+use cubecal::camera::{Camera, DistortionModel};
+use cubecal::capture::synthetic::{RenderSettings, default_view, render};
+use cubecal::detect::{CornerFinder, detect};
+use cubecal::target::Rig;
+use image::GrayImage;
+use rand::{Rng, SeedableRng};
+
+fn cube_frame(rig: &Rig, w: u32, h: u32, f: f64) -> GrayImage {
+    let camera = Camera::pinhole(
+        [w, h],
+        f,
+        f,
+        (f64::from(w) - 1.0) / 2.0,
+        (f64::from(h) - 1.0) / 2.0,
+    )
+    .with_distortion(DistortionModel::Brown5, &[-0.1]);
+    let settings = RenderSettings {
+        blur_sigma_px: 1.0,
+        noise_sigma: 2.0,
+        gamma: 2.2,
+        vignetting: 0.3,
+        seed: 7,
+        ..RenderSettings::default()
+    };
+    render(rig, &camera, &default_view(rig, &camera), &settings, 0).unwrap()
+}
+
+fn bench(label: &str, img: &GrayImage, rig: &Rig, reps: usize) {
+    let mut finder = CornerFinder::new().unwrap();
+    let det = detect(&mut finder, img, rig).unwrap();
+    let corners: usize = det.faces.iter().map(|f| f.corners.len()).sum();
+    let mut times: Vec<Duration> = (0..reps)
+        .map(|_| {
+            let t = Instant::now();
+            std::hint::black_box(detect(&mut finder, img, rig).unwrap());
+            t.elapsed()
+        })
+        .collect();
+    times.sort();
+    let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    println!(
+        "{label} ({}×{}): median {:.2} ms (min {:.2}, p90 {:.2}) over {reps} runs; {} faces, {corners} corners{}",
+        img.width(),
+        img.height(),
+        ms(times[reps / 2]),
+        ms(times[0]),
+        ms(times[reps * 9 / 10]),
+        det.faces.len(),
+        det.rejected
+            .first()
+            .map(|r| format!("; rejected: {}", r.reason))
+            .unwrap_or_default()
+    );
+}
+
+fn main() {
+    // `cargo test --benches` runs this with `--bench` absent: keep that quick.
+    let quick = !std::env::args().any(|a| a == "--bench");
+    let reps = if quick { 2 } else { 51 };
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/fixtures/rigs/cube_outside.toml"
+    );
+    let (rig, _) = Rig::load(std::path::Path::new(path)).unwrap();
+    let small = cube_frame(&rig, 1280, 960, 1000.0);
+    let large = cube_frame(&rig, 1920, 1080, 1400.0);
+    bench("cube, three faces", &small, &rig, reps);
+    bench("cube, three faces", &large, &rig, reps);
+    let grey = GrayImage::from_pixel(1280, 960, image::Luma([128]));
+    bench("no target, mid grey", &grey, &rig, reps);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+    let noise = GrayImage::from_fn(1280, 960, |_, _| image::Luma([rng.random::<u8>()]));
+    bench("no target, uniform noise", &noise, &rig, reps);
+}

@@ -1,0 +1,313 @@
+//! Grid completion: every corner of an assembled grid is fitted at full resolution, and corners the
+//! front end missed are recovered where the lattice predicts them.
+//!
+//! The X-corner front end misses corners on faces seen at 60°+ (squares a few pixels wide in one
+//! direction), in low contrast or in heavy noise; grid assembly then stops with holes or short rows. The
+//! lattice still knows where each missing corner must be: the next position along a row or column is
+//! extrapolated from the two or three before it (quadratic, so it follows perspective and lens
+//! curvature), and the X-junction fit of [`super::refine`] decides whether a corner is there. A fit is
+//! accepted only when it converges near the prediction and its four quadrants alternate dark / bright
+//! (so the board's outer edge, a margin or the neighbouring face never pass for a corner); the lattice
+//! cannot grow beyond the largest face of the rig in either direction.
+
+use std::collections::HashMap;
+
+use image::GrayImage;
+use nalgebra::Vector2;
+
+use super::XCorner;
+use super::grid::Grid;
+use super::refine::{self, Refined};
+use crate::calib::linear::homography;
+
+/// A fitted corner.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fitted {
+    pub uv: Vector2<f64>,
+    pub sigma_px: f64,
+}
+
+/// A completed grid: `rows × cols`, row-major, with the corners that could be fitted.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Completed {
+    pub rows: usize,
+    pub cols: usize,
+    pub cells: Vec<Option<Fitted>>,
+    /// Corners of the assembled grid whose fit failed (dropped).
+    pub dropped: usize,
+    /// Corners recovered by prediction and fit.
+    pub recovered: usize,
+}
+
+impl Completed {
+    pub fn get(&self, r: usize, c: usize) -> Option<Fitted> {
+        if r < self.rows && c < self.cols {
+            self.cells[r * self.cols + c]
+        } else {
+            None
+        }
+    }
+
+    pub fn count(&self) -> usize {
+        self.cells.iter().filter(|c| c.is_some()).count()
+    }
+}
+
+type Cells = HashMap<(i32, i32), Fitted>;
+
+/// The image step from `(r, c)` to the next cell along `(dr, dc)`: the central difference when both
+/// neighbours are known, else the nearest pair of consecutive filled cells on that line (up to three
+/// cells away), else the same step on a parallel line next to it.
+fn step_along(cells: &Cells, r: i32, c: i32, dr: i32, dc: i32) -> Option<Vector2<f64>> {
+    let at = |k: i32| cells.get(&(r + k * dr, c + k * dc)).map(|f| f.uv);
+    if let (Some(a), Some(b)) = (at(-1), at(1)) {
+        return Some((b - a) / 2.0);
+    }
+    for k in [0, -1, 1, -2, 2, -3] {
+        if let (Some(a), Some(b)) = (at(k), at(k + 1)) {
+            return Some(b - a);
+        }
+    }
+    [(dc, dr), (-dc, -dr)].iter().find_map(|&(or, oc)| {
+        let a = cells.get(&(r + or, c + oc))?;
+        let b = cells.get(&(r + or + dr, c + oc + dc))?;
+        Some(b.uv - a.uv)
+    })
+}
+
+/// A recovered corner's fit residual may be at most this multiple of the grid's median (+1 grey level).
+pub const RECOVER_RESIDUAL: f64 = 1.5;
+/// A recovered corner's contrast must be at least this fraction of the grid's median.
+pub const RECOVER_CONTRAST: f64 = 0.4;
+
+/// Cells within this many lines of a target feed its local homography.
+pub const LOCAL_RADIUS: i32 = 3;
+
+/// Predicted position of an empty cell: a homography fitted to the filled cells around it (within
+/// [`LOCAL_RADIUS`] lines: locally, perspective is exact and lens distortion small), else extrapolation
+/// along rows and columns.
+fn predict(cells: &Cells, r: i32, c: i32) -> Option<Vector2<f64>> {
+    let mut plane = Vec::new();
+    let mut image = Vec::new();
+    let (mut rows, mut cols) = (Vec::new(), Vec::new());
+    for dr in -LOCAL_RADIUS..=LOCAL_RADIUS {
+        for dc in -LOCAL_RADIUS..=LOCAL_RADIUS {
+            if let Some(f) = cells.get(&(r + dr, c + dc)) {
+                plane.push(Vector2::new(f64::from(dc), f64::from(dr)));
+                image.push(f.uv);
+                if !rows.contains(&dr) {
+                    rows.push(dr);
+                }
+                if !cols.contains(&dc) {
+                    cols.push(dc);
+                }
+            }
+        }
+    }
+    if plane.len() >= 6
+        && rows.len() >= 2
+        && cols.len() >= 2
+        && let Ok(h) = homography(&plane, &image)
+    {
+        let p = h * nalgebra::Vector3::new(0.0, 0.0, 1.0);
+        if p.z.abs() > 1e-12 {
+            let uv = Vector2::new(p.x / p.z, p.y / p.z);
+            if uv.iter().all(|v| v.is_finite()) {
+                return Some(uv);
+            }
+        }
+    }
+    extrapolate(cells, r, c)
+}
+
+/// Predicted position of an empty cell from the filled cells before it along rows and columns.
+fn extrapolate(cells: &Cells, r: i32, c: i32) -> Option<Vector2<f64>> {
+    let mut sum = Vector2::zeros();
+    let mut n = 0.0;
+    for (dr, dc) in [(0, 1), (0, -1), (1, 0), (-1, 0)] {
+        let at = |k: i32| cells.get(&(r - k * dr, c - k * dc)).map(|f| f.uv);
+        let p = match (at(1), at(2), at(3)) {
+            (Some(p1), Some(p2), Some(p3)) => 3.0 * p1 - 3.0 * p2 + p3,
+            (Some(p1), Some(p2), None) => 2.0 * p1 - p2,
+            _ => continue,
+        };
+        sum += p;
+        n += 1.0;
+    }
+    // Interior holes: the mean of both neighbours along a line.
+    for (dr, dc) in [(0, 1), (1, 0)] {
+        if let (Some(a), Some(b)) = (cells.get(&(r - dr, c - dc)), cells.get(&(r + dr, c + dc))) {
+            sum += (a.uv + b.uv) / 2.0;
+            n += 1.0;
+        }
+    }
+    (n > 0.0).then(|| sum / n)
+}
+
+fn fit(img: &GrayImage, p: Vector2<f64>, a: Vector2<f64>, b: Vector2<f64>) -> Option<Refined> {
+    match refine::refine(img, p, a, b) {
+        Ok(f) => Some(f),
+        Err(why) => {
+            tracing::trace!(?p, ?a, ?b, ?why, "corner fit failed");
+            None
+        }
+    }
+}
+
+/// Fit every corner of `grid` and recover the missing ones; the lattice may span at most
+/// `max_lines` rows and columns.
+pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: usize) -> Completed {
+    let mut raw: Cells = HashMap::new();
+    for r in 0..grid.rows {
+        for c in 0..grid.cols {
+            if let Some(i) = grid.get(r, c) {
+                raw.insert(
+                    (r as i32, c as i32),
+                    Fitted {
+                        uv: corners[i].uv,
+                        sigma_px: f64::NAN,
+                    },
+                );
+            }
+        }
+    }
+    // Fit the assembled corners with steps from the front-end lattice.
+    let mut cells: Cells = HashMap::new();
+    let mut dropped = 0;
+    let mut residuals = Vec::new();
+    let mut contrasts = Vec::new();
+    for (&(r, c), f) in &raw {
+        let (Some(a), Some(b)) = (step_along(&raw, r, c, 0, 1), step_along(&raw, r, c, 1, 0))
+        else {
+            dropped += 1;
+            continue;
+        };
+        match fit(img, f.uv, a, b) {
+            Some(fit) => {
+                residuals.push(fit.residual);
+                contrasts.push(fit.contrast);
+                cells.insert(
+                    (r, c),
+                    Fitted {
+                        uv: fit.uv,
+                        sigma_px: fit.sigma_px,
+                    },
+                );
+            }
+            None => dropped += 1,
+        }
+    }
+    // A recovered corner must look like the grid's own: residual and contrast near their medians.
+    let (Some(median_residual), Some(median_contrast)) =
+        (median(&mut residuals), median(&mut contrasts))
+    else {
+        return Completed {
+            rows: 0,
+            cols: 0,
+            cells: Vec::new(),
+            dropped,
+            recovered: 0,
+        };
+    };
+    let like_grid = |f: &Refined| {
+        f.residual <= RECOVER_RESIDUAL * median_residual + 1.0
+            && f.contrast >= RECOVER_CONTRAST * median_contrast
+    };
+    // Recover missing corners, ring by ring, until nothing changes.
+    let mut tried: HashMap<(i32, i32), usize> = HashMap::new();
+    let mut recovered = 0;
+    while let Some(bounds) = bounds(&cells) {
+        let mut candidates: Vec<(i32, i32)> = Vec::new();
+        for &(r, c) in cells.keys() {
+            for (dr, dc) in [(0, 1), (0, -1), (1, 0), (-1, 0)] {
+                let t = (r + dr, c + dc);
+                if cells.contains_key(&t) || candidates.contains(&t) {
+                    continue;
+                }
+                let (r0, r1, c0, c1) = bounds;
+                let span_r = (r1.max(t.0) - r0.min(t.0) + 1) as usize;
+                let span_c = (c1.max(t.1) - c0.min(t.1) + 1) as usize;
+                if span_r > max_lines || span_c > max_lines {
+                    continue;
+                }
+                candidates.push(t);
+            }
+        }
+        let mut added = false;
+        for (r, c) in candidates {
+            let n_neighbours = [(0, 1), (0, -1), (1, 0), (-1, 0)]
+                .iter()
+                .filter(|(dr, dc)| cells.contains_key(&(r + dr, c + dc)))
+                .count();
+            // Each cell is tried again only when it has gained neighbours since its last try.
+            if tried.get(&(r, c)).is_some_and(|&n| n >= n_neighbours) {
+                continue;
+            }
+            tried.insert((r, c), n_neighbours);
+            let Some(p) = predict(&cells, r, c) else {
+                continue;
+            };
+            let (Some(a), Some(b)) = (
+                step_along(&cells, r, c, 0, 1),
+                step_along(&cells, r, c, 1, 0),
+            ) else {
+                continue;
+            };
+            if let Some(f) = fit(img, p, a, b).filter(like_grid) {
+                cells.insert(
+                    (r, c),
+                    Fitted {
+                        uv: f.uv,
+                        sigma_px: f.sigma_px,
+                    },
+                );
+                tracing::trace!(r, c, ?p, uv = ?f.uv, contrast = f.contrast, residual = f.residual, width = f.edge_width, "corner recovered");
+                recovered += 1;
+                added = true;
+            }
+        }
+        if !added {
+            break;
+        }
+    }
+    let Some((r0, r1, c0, c1)) = bounds(&cells) else {
+        return Completed {
+            rows: 0,
+            cols: 0,
+            cells: Vec::new(),
+            dropped,
+            recovered,
+        };
+    };
+    let rows = (r1 - r0 + 1) as usize;
+    let cols = (c1 - c0 + 1) as usize;
+    let mut out = vec![None; rows * cols];
+    for (&(r, c), f) in &cells {
+        out[(r - r0) as usize * cols + (c - c0) as usize] = Some(*f);
+    }
+    Completed {
+        rows,
+        cols,
+        cells: out,
+        dropped,
+        recovered,
+    }
+}
+
+fn median(v: &mut [f64]) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    Some(v[v.len() / 2])
+}
+
+fn bounds(cells: &Cells) -> Option<(i32, i32, i32, i32)> {
+    if cells.is_empty() {
+        return None;
+    }
+    Some(cells.keys().fold(
+        (i32::MAX, i32::MIN, i32::MAX, i32::MIN),
+        |(a, b, c, d), &(r, cc)| (a.min(r), b.max(r), c.min(cc), d.max(cc)),
+    ))
+}
