@@ -165,6 +165,13 @@ pub fn label(
     let mut rejected = Vec::new();
     let mut found: Vec<(FaceDetection, Dense, Mapping)> = Vec::new();
     for g in grids {
+        if g.count() == 0 {
+            rejected.push(Rejection {
+                reason: "a lattice of X-corners was found but none of its corners fits a checkerboard corner"
+                    .into(),
+            });
+            continue;
+        }
         if g.count() != g.rows * g.cols || g.rows < MIN_LINES || g.cols < MIN_LINES {
             rejected.push(Rejection {
                 reason: format!(

@@ -38,7 +38,7 @@ pub const MIN_QUADRANT_PIXELS: usize = 2;
 /// See [`quadrants_alternate`].
 pub const MIN_QUADRANT_SEPARATION: f64 = 0.35;
 /// Iteration cap of the fit.
-pub const MAX_ITERATIONS: usize = 30;
+pub const MAX_ITERATIONS: usize = 20;
 /// The fit stops when the corner moves less than this in one step (px).
 pub const CONVERGED_PX: f64 = 1e-3;
 /// The fitted corner may move at most this far from its start, in board units.
@@ -224,6 +224,9 @@ pub fn refine(
     }
     let (mut jtj, mut jtr, mut ssr) = accumulate(&win, &p);
     let mut lambda = 1e-3;
+    let to_board = Matrix2::from_columns(&[a, b])
+        .try_inverse()
+        .ok_or(RefineFailure::Degenerate)?;
     for _ in 0..MAX_ITERATIONS {
         let mut a_mat = jtj;
         for i in 0..7 {
@@ -242,6 +245,11 @@ pub fn refine(
         let (j2, r2, s2) = accumulate(&win, &cand);
         if s2.is_finite() && s2 < ssr {
             p = cand;
+            // A fit running away from its start will be rejected: stop paying for it.
+            let st = to_board * Vector2::new(p[0], p[1]);
+            if st.x.abs() > 2.0 * MAX_SHIFT || st.y.abs() > 2.0 * MAX_SHIFT {
+                return Err(RefineFailure::Moved);
+            }
             jtj = j2;
             jtr = r2;
             let done = step[0].hypot(step[1]) < CONVERGED_PX;
@@ -262,10 +270,7 @@ pub fn refine(
         return Err(RefineFailure::Degenerate);
     }
     // Shift in board units.
-    let st = Matrix2::from_columns(&[a, b])
-        .try_inverse()
-        .ok_or(RefineFailure::Degenerate)?
-        * c;
+    let st = to_board * c;
     if st.x.abs() > MAX_SHIFT || st.y.abs() > MAX_SHIFT {
         return Err(RefineFailure::Moved);
     }
