@@ -18,6 +18,7 @@ use nalgebra::Vector2;
 
 pub mod grid;
 pub mod label;
+pub mod overlay;
 
 /// ChESS response floor. The crate's default (30) loses most corners of foreshortened, low-contrast
 /// faces (squares of ~15–25 px seen at 60°+); false corners this lets through are removed by grid
