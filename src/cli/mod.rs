@@ -7,6 +7,7 @@ use clap::{Parser, Subcommand};
 use cubecal::exit;
 
 mod capture;
+mod detect;
 mod render;
 mod solve;
 mod target;
@@ -32,6 +33,8 @@ enum Command {
     Solve(solve::SolveArgs),
     /// Render synthetic frames of a rig with exact ground truth.
     Render(render::RenderArgs),
+    /// Find and label the rig's checkerboard faces in image files (optionally drawing overlays).
+    Detect(detect::DetectArgs),
     /// Work with rig descriptions (print targets).
     #[command(subcommand)]
     Target(target::TargetCommand),
@@ -69,6 +72,7 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Solve(args) => solve::run(args, out),
         Command::Render(args) => render::run(args, out),
+        Command::Detect(args) => detect::run(args, out),
         Command::Target(cmd) => target::run(cmd, out),
         Command::Devices(args) => capture::run_devices(args, out),
         Command::Record(args) => capture::run_record(args, out),
@@ -120,7 +124,13 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
         if let Some(e) = cause.downcast_ref::<cubecal::detect::DetectError>() {
             return e.exit_code();
         }
+        if let Some(e) = cause.downcast_ref::<cubecal::detect::overlay::OverlayError>() {
+            return e.exit_code();
+        }
         if let Some(e) = cause.downcast_ref::<cubecal::turntable::TurntableError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<detect::DetectCliError>() {
             return e.exit_code();
         }
     }

@@ -10,7 +10,8 @@
 //! (so the board's outer edge, a margin or the neighbouring face never pass for a corner); the lattice
 //! cannot grow beyond the largest face of the rig in either direction.
 
-use std::collections::HashMap;
+// Ordered: recovery order must not depend on hashing (same frame, same result).
+use std::collections::BTreeMap;
 
 use image::GrayImage;
 use nalgebra::Vector2;
@@ -53,7 +54,7 @@ impl Completed {
     }
 }
 
-type Cells = HashMap<(i32, i32), Fitted>;
+type Cells = BTreeMap<(i32, i32), Fitted>;
 
 /// The image step from `(r, c)` to the next cell along `(dr, dc)`: the central difference when both
 /// neighbours are known, else the nearest pair of consecutive filled cells on that line (up to three
@@ -157,7 +158,7 @@ fn fit(img: &GrayImage, p: Vector2<f64>, a: Vector2<f64>, b: Vector2<f64>) -> Op
 /// Fit every corner of `grid` and recover the missing ones; the lattice may span at most
 /// `max_lines` rows and columns.
 pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: usize) -> Completed {
-    let mut raw: Cells = HashMap::new();
+    let mut raw: Cells = BTreeMap::new();
     for r in 0..grid.rows {
         for c in 0..grid.cols {
             if let Some(i) = grid.get(r, c) {
@@ -172,7 +173,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
         }
     }
     // Fit the assembled corners with steps from the front-end lattice.
-    let mut cells: Cells = HashMap::new();
+    let mut cells: Cells = BTreeMap::new();
     let mut dropped = 0;
     let mut residuals = Vec::new();
     let mut contrasts = Vec::new();
@@ -214,7 +215,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
             && f.contrast >= RECOVER_CONTRAST * median_contrast
     };
     // Recover missing corners, ring by ring, until nothing changes.
-    let mut tried: HashMap<(i32, i32), usize> = HashMap::new();
+    let mut tried: BTreeMap<(i32, i32), usize> = BTreeMap::new();
     let mut recovered = 0;
     while let Some(bounds) = bounds(&cells) {
         let mut candidates: Vec<(i32, i32)> = Vec::new();

@@ -12,7 +12,9 @@
 //! Grid indices are local: which face a grid is, and where its (0, 0) corner lies, is decided later
 //! against the rig.
 
-use std::collections::HashMap;
+// Ordered maps: the growth order, and so the result, must not depend on hashing (replayed sessions
+// must give the same detections).
+use std::collections::BTreeMap;
 
 use nalgebra::Vector2;
 
@@ -134,7 +136,7 @@ impl Builder<'_> {
         }
     }
 
-    fn grow(&mut self, seed: usize) -> Option<HashMap<(i32, i32), usize>> {
+    fn grow(&mut self, seed: usize) -> Option<BTreeMap<(i32, i32), usize>> {
         let s = self.corners[seed];
         let (right, sr) = self.nearer_side(seed, s.axes[0])?;
         let (down, sd) = self.nearer_side(seed, s.axes[1])?;
@@ -153,7 +155,7 @@ impl Builder<'_> {
         )?;
         let (cr, rd) = (sr as i32, sd as i32);
         tracing::trace!(seed = ?s.uv, right = ?self.corners[right].uv, down = ?self.corners[down].uv, "grid seed");
-        let mut cells: HashMap<(i32, i32), usize> = HashMap::new();
+        let mut cells: BTreeMap<(i32, i32), usize> = BTreeMap::new();
         cells.insert((0, 0), seed);
         cells.insert((0, cr), right);
         cells.insert((rd, 0), down);

@@ -23,6 +23,7 @@ use nalgebra::Vector2;
 pub mod complete;
 pub mod grid;
 pub mod label;
+pub mod overlay;
 pub mod refine;
 pub mod score;
 

@@ -1,0 +1,606 @@
+//! The detector fed random and adversarial frames that contain no rig face: uniform frames, noise,
+//! stripes, fine checkerboards, checkerboards of sizes no face has (several scales and rotations),
+//! salt and pepper, tiny and huge frames, and a proptest over random sizes and content. Every frame
+//! goes through `detect` with the cube rig and with the flat 9×6 board. Nothing may panic, frames
+//! under `MIN_SIDE` must fail with `TooSmall`, no face may be reported, and every call must end
+//! within a generous bound. Each call's time is printed (`cargo test --test detect_fuzz -- --nocapture`).
+//! Every random generator is seeded.
+//!
+//! The `#[ignore]`d tests are what this fuzzing found and the detector does not handle yet, each with
+//! its recipe: boards cut by the frame border labelled as faces, grid assembly that is not
+//! deterministic, and frames (fine stripes, dense checkerboards) that take seconds. The passing tests
+//! leave exactly those inputs out.
+
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::print_stderr
+)]
+
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use cubecal::detect::{CornerFinder, DetectError, FrameDetection, MIN_SIDE, detect};
+use cubecal::target::Rig;
+use image::{GrayImage, Luma};
+use proptest::prelude::*;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+
+/// Time allowed for one `detect` call (test profile, shared 2-core machine).
+const BOUND: Duration = Duration::from_secs(2);
+/// Time allowed for one `detect` call on the huge frame.
+const HUGE_BOUND: Duration = Duration::from_secs(5);
+
+const RIGS: [&str; 2] = ["cube_outside.toml", "opencv_board_9x6.toml"];
+/// Inner corners (cols, rows) of the faces of [`RIGS`] (checked against the files by
+/// [`checkerboards_of_the_wrong_size`]).
+const FACE_SIZES: [(u32, u32); 4] = [(9, 8), (8, 7), (7, 6), (9, 6)];
+
+fn rigs() -> Vec<Rig> {
+    RIGS.iter()
+        .map(|name| {
+            let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("fixtures/rigs")
+                .join(name);
+            Rig::load(&p).unwrap().0
+        })
+        .collect()
+}
+
+/// Runs frames through the detector with every rig; collects failures instead of stopping at the
+/// first, so that one run reports every bad case.
+struct Fuzz {
+    rigs: Vec<Rig>,
+    finder: CornerFinder,
+    failures: Vec<String>,
+}
+
+impl Fuzz {
+    fn new() -> Fuzz {
+        Fuzz {
+            rigs: rigs(),
+            finder: CornerFinder::new().unwrap(),
+            failures: Vec::new(),
+        }
+    }
+
+    /// Detect in `img` with every rig; a frame under `MIN_SIDE` must be `TooSmall`, any other must
+    /// give no face. Returns the detections (for callers that look at the rejections).
+    fn check(&mut self, case: &str, img: &GrayImage, bound: Duration) -> Vec<FrameDetection> {
+        let mut found = Vec::new();
+        for k in 0..self.rigs.len() {
+            let rig = &self.rigs[k];
+            let started = Instant::now();
+            let result = catch_unwind(AssertUnwindSafe(|| detect(&mut self.finder, img, rig)));
+            let t = started.elapsed();
+            let (w, h) = img.dimensions();
+            let label = format!("{case} {w}×{h} rig '{}'", rig.name);
+            let mut fail = |why: String| self.failures.push(format!("{label}: {why}"));
+            match result {
+                Err(panic) => {
+                    let msg = panic
+                        .downcast_ref::<String>()
+                        .cloned()
+                        .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                        .unwrap_or_default();
+                    fail(format!("panicked: {msg}"));
+                    // The finder's scratch state is unknown after a panic.
+                    self.finder = CornerFinder::new().unwrap();
+                }
+                Ok(Err(DetectError::TooSmall { width, height })) => {
+                    eprintln!("{label}: TooSmall in {:.1} ms", t.as_secs_f64() * 1e3);
+                    if (width, height) != (w, h) || (w >= MIN_SIDE && h >= MIN_SIDE) {
+                        fail(format!("unexpected TooSmall {{ {width}, {height} }}"));
+                    }
+                }
+                Ok(Err(e)) => fail(format!("error: {e}")),
+                Ok(Ok(det)) => {
+                    eprintln!(
+                        "{label}: {} faces, {} rejections in {:.1} ms",
+                        det.faces.len(),
+                        det.rejected.len(),
+                        t.as_secs_f64() * 1e3
+                    );
+                    if w < MIN_SIDE || h < MIN_SIDE {
+                        fail("a frame under MIN_SIDE was accepted".into());
+                    }
+                    if !det.faces.is_empty() {
+                        let names: Vec<String> = det
+                            .faces
+                            .iter()
+                            .map(|f| {
+                                format!(
+                                    "'{}' ({} corners, (0,0) at {:.1?})",
+                                    rig.faces[f.face].name,
+                                    f.corners.len(),
+                                    f.corners[0].uv
+                                )
+                            })
+                            .collect();
+                        fail(format!("reported faces {}", names.join(", ")));
+                    }
+                    if (det.width, det.height) != (w, h) {
+                        fail(format!("size reported as {}×{}", det.width, det.height));
+                    }
+                    found.push(det);
+                }
+            }
+            if t > bound {
+                self.failures.push(format!(
+                    "{label}: took {:.0} ms (bound {:.0} ms)",
+                    t.as_secs_f64() * 1e3,
+                    bound.as_secs_f64() * 1e3
+                ));
+            }
+        }
+        found
+    }
+
+    fn finish(self) {
+        assert!(
+            self.failures.is_empty(),
+            "{} failures:\n{}",
+            self.failures.len(),
+            self.failures.join("\n")
+        );
+    }
+}
+
+fn uniform_noise(w: u32, h: u32, seed: u64) -> GrayImage {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    GrayImage::from_fn(w, h, |_, _| Luma([rng.random()]))
+}
+
+fn gaussian_noise(w: u32, h: u32, mean: f64, sigma: f64, seed: u64) -> GrayImage {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let normal = Normal::new(mean, sigma).unwrap();
+    GrayImage::from_fn(w, h, |_, _| {
+        Luma([normal.sample(&mut rng).round().clamp(0.0, 255.0) as u8])
+    })
+}
+
+fn salt_and_pepper(w: u32, h: u32, fraction: f64, seed: u64) -> GrayImage {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    GrayImage::from_fn(w, h, |_, _| {
+        let v = if rng.random_bool(fraction) {
+            if rng.random_bool(0.5) { 0 } else { 255 }
+        } else {
+            128
+        };
+        Luma([v])
+    })
+}
+
+/// Black and white stripes of `period` px (one black and one white band), across direction
+/// `angle_deg` (0: vertical stripes, 90: horizontal).
+fn stripes(w: u32, h: u32, period: f64, angle_deg: f64) -> GrayImage {
+    let (s, c) = angle_deg.to_radians().sin_cos();
+    GrayImage::from_fn(w, h, |x, y| {
+        let t = (f64::from(x) * c + f64::from(y) * s) / period;
+        Luma([if t.rem_euclid(1.0) < 0.5 { 20 } else { 235 }])
+    })
+}
+
+/// A checkerboard filling the frame, squares of `square` px.
+fn fine_checkerboard(w: u32, h: u32, square: u32) -> GrayImage {
+    GrayImage::from_fn(w, h, |x, y| {
+        Luma([if (x / square + y / square).is_multiple_of(2) {
+            20
+        } else {
+            235
+        }])
+    })
+}
+
+/// A printed board with `cols × rows` inner corners, squares of `square` px and a one-square white
+/// margin, turned by `angle_deg` about the frame centre, on a mid-grey background; 3×3 supersampled.
+/// Panics unless the whole board (margin included) is inside the frame.
+fn board(w: u32, h: u32, cols: u32, rows: u32, square: f64, angle_deg: f64) -> GrayImage {
+    let (ew, eh) = board_extent(cols, rows, square, angle_deg);
+    assert!(
+        ew + 4.0 < f64::from(w) && eh + 4.0 < f64::from(h),
+        "{cols}×{rows} board of {square} px squares at {angle_deg}° does not fit {w}×{h}"
+    );
+    let centre = ((f64::from(w) - 1.0) / 2.0, (f64::from(h) - 1.0) / 2.0);
+    board_at(w, h, cols, rows, square, angle_deg, centre)
+}
+
+/// Size (px) of the axis-aligned box around a `cols × rows` board (margin included) turned by
+/// `angle_deg`.
+fn board_extent(cols: u32, rows: u32, square: f64, angle_deg: f64) -> (f64, f64) {
+    let (bw, bh) = (f64::from(cols + 3) * square, f64::from(rows + 3) * square);
+    let (s, c) = angle_deg.to_radians().sin_cos();
+    (bw * c.abs() + bh * s.abs(), bw * s.abs() + bh * c.abs())
+}
+
+/// As [`board`], centred on `centre` (pixel coordinates), and wherever that puts it: parts outside
+/// the frame are cut off. Inner corner `(r, c)` of an unturned board is at
+/// `centre + ((c + 2 − (cols + 3)/2)·square, (r + 2 − (rows + 3)/2)·square)`.
+fn board_at(
+    w: u32,
+    h: u32,
+    cols: u32,
+    rows: u32,
+    square: f64,
+    angle_deg: f64,
+    centre: (f64, f64),
+) -> GrayImage {
+    let (bw, bh) = (f64::from(cols + 3) * square, f64::from(rows + 3) * square);
+    let (s, c) = angle_deg.to_radians().sin_cos();
+    const N: u32 = 3;
+    GrayImage::from_fn(w, h, |x, y| {
+        let mut sum = 0.0;
+        for sy in 0..N {
+            for sx in 0..N {
+                // Sample points inside the pixel (pixel centres at integer coordinates).
+                let px = f64::from(x) - 0.5 + (f64::from(sx) + 0.5) / f64::from(N) - centre.0;
+                let py = f64::from(y) - 0.5 + (f64::from(sy) + 0.5) / f64::from(N) - centre.1;
+                // Board coordinates: rotate back, origin at the board's top-left outer edge.
+                let bx = c * px + s * py + bw / 2.0;
+                let by = -s * px + c * py + bh / 2.0;
+                let v = if bx < 0.0 || by < 0.0 || bx >= bw || by >= bh {
+                    120.0
+                } else {
+                    let (i, j) = ((bx / square).floor() as i64, (by / square).floor() as i64);
+                    let in_pattern =
+                        i >= 1 && j >= 1 && i <= i64::from(cols) + 1 && j <= i64::from(rows) + 1;
+                    if in_pattern && (i + j) % 2 == 0 {
+                        20.0
+                    } else {
+                        235.0
+                    }
+                };
+                sum += v;
+            }
+        }
+        Luma([(sum / f64::from(N * N)).round() as u8])
+    })
+}
+
+#[test]
+fn uniform_frames() {
+    let mut fuzz = Fuzz::new();
+    for (name, v) in [("black", 0), ("white", 255), ("mid grey", 128)] {
+        let dets = fuzz.check(name, &GrayImage::from_pixel(640, 480, Luma([v])), BOUND);
+        for d in dets {
+            assert!(
+                d.rejected
+                    .iter()
+                    .any(|r| r.reason.contains("no checkerboard grid")),
+                "{name}: {:?}",
+                d.rejected
+            );
+        }
+    }
+    fuzz.finish();
+}
+
+#[test]
+fn noise_frames() {
+    let mut fuzz = Fuzz::new();
+    for seed in 0..3 {
+        fuzz.check(
+            &format!("uniform noise seed {seed}"),
+            &uniform_noise(640, 480, seed),
+            BOUND,
+        );
+        for sigma in [10.0, 40.0, 90.0] {
+            fuzz.check(
+                &format!("gaussian noise σ {sigma} seed {seed}"),
+                &gaussian_noise(640, 480, 128.0, sigma, seed),
+                BOUND,
+            );
+        }
+        for fraction in [0.02, 0.1, 0.3] {
+            fuzz.check(
+                &format!("salt and pepper {fraction} seed {seed}"),
+                &salt_and_pepper(640, 480, fraction, seed),
+                BOUND,
+            );
+        }
+    }
+    fuzz.finish();
+}
+
+/// Stripe frames that take the detector far longer than [`BOUND`] (see
+/// [`fine_stripes_are_searched_within_the_time_bound`]); left out of [`stripe_frames`].
+const SLOW_STRIPES: [(f64, f64); 8] = [
+    (2.0, 30.0),
+    (2.0, 45.0),
+    (2.0, 135.0),
+    (3.0, 30.0),
+    (3.0, 45.0),
+    (3.0, 135.0),
+    (4.0, 0.0),
+    (4.0, 90.0),
+];
+
+#[test]
+fn stripe_frames() {
+    let mut fuzz = Fuzz::new();
+    for period in [2.0, 3.0, 4.0, 7.0, 16.0, 41.0] {
+        for angle in [0.0, 90.0, 45.0, 30.0, 135.0] {
+            if SLOW_STRIPES.contains(&(period, angle)) {
+                continue;
+            }
+            fuzz.check(
+                &format!("stripes period {period} px at {angle}°"),
+                &stripes(640, 480, period, angle),
+                BOUND,
+            );
+        }
+    }
+    fuzz.finish();
+}
+
+/// Fine stripes are slow in both stages of the detector (measured alone, test profile, 640×480):
+/// axis-aligned 4 px stripes take 2.8–3.9 s in the `chess-corners` front end and yield no corner;
+/// oblique 2–3 px stripes give 1000–2700 corners in dozens of lattices, and grid assembly then takes
+/// 0.3–9 s, varying from call to call (see `the_same_frame_gives_the_same_detection`).
+#[test]
+#[ignore = "detector too slow on fine stripes: 1–9 s per 640×480 frame (front end and grid assembly)"]
+fn fine_stripes_are_searched_within_the_time_bound() {
+    let mut fuzz = Fuzz::new();
+    for (period, angle) in SLOW_STRIPES {
+        fuzz.check(
+            &format!("stripes period {period} px at {angle}°"),
+            &stripes(640, 480, period, angle),
+            BOUND,
+        );
+    }
+    fuzz.finish();
+}
+
+/// Grid assembly time grows roughly with the cube of the lattice size (measured alone, test profile:
+/// 286 corners 39 ms, 540 corners 0.23 s, 1215 corners 2.1 s), and `grid::MAX_CORNERS` (2000) lets
+/// a single lattice take several times longer.
+#[test]
+#[ignore = "grid assembly is super-linear: one dense lattice of 1200–2000 corners takes 2–10 s"]
+fn dense_checkerboards_are_searched_within_the_time_bound() {
+    let mut fuzz = Fuzz::new();
+    fuzz.check(
+        "checkerboard of 4 px squares (1215 corners)",
+        &fine_checkerboard(128, 199, 4),
+        BOUND,
+    );
+    fuzz.check(
+        "checkerboard of 6 px squares (capped at 2000 corners)",
+        &fine_checkerboard(300, 300, 6),
+        BOUND,
+    );
+    fuzz.finish();
+}
+
+/// A checkerboard larger than a face, cut by the frame's border so that exactly a face's number of
+/// inner corners is visible, is labelled as that face: the labeller checks the inner squares' colours
+/// but not that the ring of squares around the grid, and the white margin beyond it, are there. On a
+/// real rig this mislabels, for example, a partly visible bigger board (or a larger face cut down to
+/// a smaller face's size) with wrong 3D points.
+#[test]
+#[ignore = "a board cut by the frame border to a face's grid size is labelled as that face"]
+fn boards_cut_by_the_border_are_not_labelled_as_faces() {
+    let mut fuzz = Fuzz::new();
+    // Found by the proptest (w 185, h 154, kind 3, seed 15697626356347620307 in the frame-filling
+    // checkerboard generator it had then): 18 px squares filling the frame show 9×8 inner corners.
+    fuzz.check(
+        "checkerboard of 18 px squares filling the frame",
+        &fine_checkerboard(185, 154, 18),
+        BOUND,
+    );
+    // A 10×9 board, 30 px squares, whose last column and row of inner corners are outside the frame:
+    // 9×8 visible, the size of the cube's 'top'.
+    fuzz.check(
+        "10×9 board, last column and row cut off",
+        &board_at(640, 480, 10, 9, 30.0, 0.0, (513.0, 368.0)),
+        BOUND,
+    );
+    // A 10×7 board cut to 9×6, the OpenCV board's size.
+    fuzz.check(
+        "10×7 board, last column and row cut off",
+        &board_at(640, 480, 10, 7, 30.0, 0.0, (513.0, 398.0)),
+        BOUND,
+    );
+    fuzz.finish();
+}
+
+/// `grid::assemble` grew lattices by iterating a `HashMap` (std's randomly seeded hasher), so where
+/// corners were ambiguous the grids, and the time, differed from call to call (49–61 grids on these
+/// stripes). Replaying a recorded session must give the same detections every time; grids and
+/// completion now use ordered maps.
+#[test]
+fn the_same_frame_gives_the_same_detection() {
+    let rig = &rigs()[0];
+    let img = stripes(640, 480, 2.0, 45.0);
+    let mut finder = CornerFinder::new().unwrap();
+    let first = detect(&mut finder, &img, rig).unwrap();
+    for run in 1..4 {
+        let again = detect(&mut finder, &img, rig).unwrap();
+        assert_eq!(
+            (&again.faces, &again.rejected),
+            (&first.faces, &first.rejected),
+            "run {run}: {} rejections, first run {}",
+            again.rejected.len(),
+            first.rejected.len()
+        );
+    }
+}
+
+#[test]
+fn fine_checkerboards() {
+    let mut fuzz = Fuzz::new();
+    for square in 1..=3 {
+        fuzz.check(
+            &format!("checkerboard of {square} px squares"),
+            &fine_checkerboard(640, 480, square),
+            BOUND,
+        );
+    }
+    fuzz.finish();
+}
+
+/// Whole boards with inner-corner counts that no face of either rig has, including near misses that
+/// contain a face's grid (10×9 ⊃ 9×8, 9×7 ⊃ 9×6).
+#[test]
+fn checkerboards_of_the_wrong_size() {
+    let sizes = [(5, 4), (4, 3), (8, 6), (10, 6), (9, 5), (9, 7), (10, 9)];
+    let mut faces: Vec<(u32, u32)> = rigs()
+        .iter()
+        .flat_map(|rig| rig.faces.iter().map(|f| (f.cols as u32, f.rows as u32)))
+        .collect();
+    faces.sort_unstable();
+    let mut expected = FACE_SIZES.to_vec();
+    expected.sort_unstable();
+    assert_eq!(faces, expected, "FACE_SIZES is out of date");
+    for (cols, rows) in sizes {
+        assert!(
+            !FACE_SIZES.contains(&(cols, rows)) && !FACE_SIZES.contains(&(rows, cols)),
+            "{cols}×{rows} is a face size"
+        );
+    }
+    let mut fuzz = Fuzz::new();
+    let (mut cases, mut seen) = (0, 0);
+    for (cols, rows) in sizes {
+        for square in [14.0, 20.0, 28.0] {
+            for angle in [0.0, 17.0, 45.0, 98.0] {
+                let img = board(800, 600, cols, rows, square, angle);
+                let dets = fuzz.check(
+                    &format!("{cols}×{rows} board, {square} px squares at {angle}°"),
+                    &img,
+                    BOUND,
+                );
+                // The frame must really reach the labeller: its grid is rejected by size.
+                for d in &dets {
+                    cases += 1;
+                    if d.rejected
+                        .iter()
+                        .any(|r| r.reason.contains("matches no face"))
+                    {
+                        seen += 1;
+                    } else {
+                        eprintln!(
+                            "  {cols}×{rows} board, {square} px at {angle}°: {:?}",
+                            d.rejected
+                        );
+                    }
+                }
+            }
+        }
+    }
+    eprintln!("wrong-size boards rejected by size in {seen} of {cases} detections");
+    // All of them when written (squares of 10 px were not found at all, hence 14 px and up).
+    assert!(seen * 10 >= cases * 9, "{seen} of {cases}");
+    fuzz.finish();
+}
+
+#[test]
+fn tiny_frames() {
+    let mut fuzz = Fuzz::new();
+    for (w, h) in [
+        (1, 1),
+        (1, 1000),
+        (1000, 1),
+        (2, 2),
+        (31, 31),
+        (31, 1000),
+        (1000, 31),
+        (32, 31),
+        (32, 32),
+        (33, 40),
+        (40, 33),
+        (64, 32),
+    ] {
+        fuzz.check("noise", &uniform_noise(w, h, u64::from(w * h)), BOUND);
+        fuzz.check("grey", &GrayImage::from_pixel(w, h, Luma([128])), BOUND);
+        fuzz.check("2 px checkerboard", &fine_checkerboard(w, h, 2), BOUND);
+        fuzz.check("7 px checkerboard", &fine_checkerboard(w, h, 7), BOUND);
+    }
+    fuzz.finish();
+}
+
+#[test]
+fn huge_noisy_frame() {
+    let mut fuzz = Fuzz::new();
+    fuzz.check(
+        "mid grey with gaussian noise σ 12",
+        &gaussian_noise(6000, 4000, 128.0, 12.0, 7),
+        HUGE_BOUND,
+    );
+    fuzz.finish();
+}
+
+/// Random content for the proptest: picked by `kind` from `seed`.
+fn random_frame(w: u32, h: u32, kind: u8, seed: u64) -> GrayImage {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    match kind {
+        0 => uniform_noise(w, h, seed),
+        1 => GrayImage::from_pixel(w, h, Luma([rng.random()])),
+        // Stripes of 5 px or more: finer ones are slow (see
+        // `fine_stripes_are_searched_within_the_time_bound`).
+        2 => stripes(
+            w,
+            h,
+            rng.random_range(5.0..40.0),
+            rng.random_range(0.0..180.0),
+        ),
+        // A whole board of a size no face has, at a random scale, angle and place, entirely inside
+        // the frame (boards cut by the frame's border are labelled as faces, see
+        // `boards_cut_by_the_border_are_not_labelled_as_faces`; squares under 4 px are not found).
+        3 => {
+            let (cols, rows) = loop {
+                let (c, r) = (rng.random_range(2..=12), rng.random_range(2..=12));
+                if !FACE_SIZES.contains(&(c, r)) && !FACE_SIZES.contains(&(r, c)) {
+                    break (c, r);
+                }
+            };
+            let angle = rng.random_range(0.0..180.0);
+            let (ew, eh) = board_extent(cols, rows, 1.0, angle);
+            let largest = ((f64::from(w) - 4.0) / ew).min((f64::from(h) - 4.0) / eh);
+            if largest < 4.0 {
+                return uniform_noise(w, h, seed);
+            }
+            let square = rng.random_range(4.0..=largest.min(30.0));
+            let (ew, eh) = (ew * square, eh * square);
+            let cx = rng.random_range(ew / 2.0..=f64::from(w) - 1.0 - ew / 2.0);
+            let cy = rng.random_range(eh / 2.0..=f64::from(h) - 1.0 - eh / 2.0);
+            board_at(w, h, cols, rows, square, angle, (cx, cy))
+        }
+        // A checkerboard filling the frame with squares too small to be found (1 or 2 px).
+        5 => fine_checkerboard(w, h, rng.random_range(1..=2)),
+        // Random axis-aligned blocks of random grey: many T- and L-junctions, few X-corners.
+        _ => {
+            let mut img = GrayImage::from_pixel(w, h, Luma([rng.random()]));
+            for _ in 0..rng.random_range(1..40) {
+                let (x0, y0) = (rng.random_range(0..w), rng.random_range(0..h));
+                let (bw, bh) = (rng.random_range(1..=w), rng.random_range(1..=h));
+                let v = Luma([rng.random()]);
+                for y in y0..(y0 + bh).min(h) {
+                    for x in x0..(x0 + bw).min(w) {
+                        img.put_pixel(x, y, v);
+                    }
+                }
+            }
+            img
+        }
+    }
+}
+
+proptest! {
+    // Seeded so a run is reproducible (6000 unseeded cases also passed when this was written).
+    #![proptest_config(ProptestConfig {
+        cases: 300,
+        rng_seed: proptest::test_runner::RngSeed::Fixed(0xdec7_f022),
+        ..ProptestConfig::default()
+    })]
+
+    #[test]
+    fn random_sizes_and_content(w in 1u32..300, h in 1u32..300, kind in 0u8..6, seed in any::<u64>()) {
+        let img = random_frame(w, h, kind, seed);
+        let mut fuzz = Fuzz::new();
+        fuzz.check(&format!("random kind {kind} seed {seed}"), &img, BOUND);
+        prop_assert!(fuzz.failures.is_empty(), "{}", fuzz.failures.join("\n"));
+    }
+}
