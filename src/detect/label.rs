@@ -20,7 +20,6 @@ use nalgebra::{Vector2, Vector3};
 
 use super::complete::Completed;
 use super::grid::MIN_LINES;
-use super::refine;
 use crate::calib::linear::{COPLANAR_TOLERANCE, dlt, relative_thickness};
 use crate::target::{Rig, SquareColour};
 

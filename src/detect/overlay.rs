@@ -283,6 +283,7 @@ mod tests {
                 col: c,
                 xyz: nalgebra::Vector3::zeros(),
                 uv: Vector2::new(origin[0] + c as f64 * step, origin[1] + r as f64 * step),
+                sigma_px: 0.01,
             })
             .collect();
         FaceDetection {
