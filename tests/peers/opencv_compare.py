@@ -588,6 +588,8 @@ def better_window(summaries: list[dict], max_angle: float) -> str:
         return (s["detected_below_max_angle"], s["detected"], -(s["rms_px"] or 1e9))
 
     best = max(classic, key=key)
+    if all(key(s) == key(best) for s in classic):
+        return "neither (a tie)"
     return best["label"]
 
 
