@@ -164,6 +164,36 @@ impl RenderSettings {
         if !(0.0..=1.0).contains(&self.vignetting) {
             return bad("vignetting", self.vignetting, "a fraction in 0..=1");
         }
+        self.palette.validate()
+    }
+}
+
+impl Palette {
+    /// Check every reflectance is in `0..=1` and the black squares are darker than the white ones
+    /// (otherwise the printed pattern would be blank or inverted, and a detector would rightly see a
+    /// different board from the one the ground truth describes).
+    pub fn validate(&self) -> Result<(), SyntheticError> {
+        for (name, value) in [
+            ("black", self.black),
+            ("white", self.white),
+            ("body", self.body),
+            ("background", self.background),
+        ] {
+            if !(0.0..=1.0).contains(&value) {
+                return Err(SyntheticError::Setting {
+                    name,
+                    value: value.to_string(),
+                    expected: "a linear reflectance in 0..=1",
+                });
+            }
+        }
+        if !(self.black < self.white) {
+            return Err(SyntheticError::Setting {
+                name: "black",
+                value: format!("{} (white = {})", self.black, self.white),
+                expected: "a reflectance below white's (0 ≤ black < white ≤ 1)",
+            });
+        }
         Ok(())
     }
 }

@@ -6,7 +6,7 @@ use std::str::FromStr;
 use anyhow::Context;
 use cubecal::camera::{Camera, DistortionModel};
 use cubecal::capture::synthetic::{
-    RenderSettings, SyntheticError, default_view, ground_truth, random_poses, render,
+    Palette, RenderSettings, SyntheticError, default_view, ground_truth, random_poses, render,
     turntable_poses, write_frame,
 };
 use cubecal::target::Rig;
@@ -109,6 +109,13 @@ pub struct RenderArgs {
     /// Vignetting: brightness loss at the farthest image corner (0..1).
     #[arg(long, default_value_t = 0.0, value_parser = fraction)]
     pub vignetting: f64,
+    /// Reflectance of the black squares (linear, 0..1; must be below --white). Raise it and lower
+    /// --white for a low-contrast print, e.g. `--black 0.3 --white 0.55`.
+    #[arg(long, default_value_t = Palette::default().black, value_parser = fraction)]
+    pub black: f64,
+    /// Reflectance of the white squares and the board margin (linear, 0..1; must be above --black).
+    #[arg(long, default_value_t = Palette::default().white, value_parser = fraction)]
+    pub white: f64,
     /// Seed for noise and random poses.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -185,6 +192,11 @@ pub fn run(args: RenderArgs, out: Output) -> anyhow::Result<u8> {
         gamma: args.gamma,
         vignetting: args.vignetting,
         seed: args.seed,
+        palette: Palette {
+            black: args.black,
+            white: args.white,
+            ..Palette::default()
+        },
         ..RenderSettings::default()
     };
     settings.validate()?;
