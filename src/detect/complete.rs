@@ -41,6 +41,17 @@ pub struct Completed {
 }
 
 impl Completed {
+    /// A grid none of whose corners could be fitted.
+    fn empty(dropped: usize, recovered: usize) -> Completed {
+        Completed {
+            rows: 0,
+            cols: 0,
+            cells: Vec::new(),
+            dropped,
+            recovered,
+        }
+    }
+
     pub fn get(&self, r: usize, c: usize) -> Option<Fitted> {
         if r < self.rows && c < self.cols {
             self.cells[r * self.cols + c]
@@ -202,13 +213,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
     let (Some(median_residual), Some(median_contrast)) =
         (median(&mut residuals), median(&mut contrasts))
     else {
-        return Completed {
-            rows: 0,
-            cols: 0,
-            cells: Vec::new(),
-            dropped,
-            recovered: 0,
-        };
+        return Completed::empty(dropped, 0);
     };
     let like_grid = |f: &Refined| {
         f.residual <= RECOVER_RESIDUAL * median_residual + 1.0
@@ -272,13 +277,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
         }
     }
     let Some((r0, r1, c0, c1)) = bounds(&cells) else {
-        return Completed {
-            rows: 0,
-            cols: 0,
-            cells: Vec::new(),
-            dropped,
-            recovered,
-        };
+        return Completed::empty(dropped, recovered);
     };
     let rows = (r1 - r0 + 1) as usize;
     let cols = (c1 - c0 + 1) as usize;
