@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use cubecal::camera::{Camera, DistortionModel};
 use cubecal::capture::synthetic::{RenderSettings, default_view, render};
-use cubecal::detect::{CornerFinder, detect};
+use cubecal::detect::{CornerFinder, complete, detect, grid, label};
 use cubecal::target::Rig;
 use image::GrayImage;
 use rand::{Rng, SeedableRng};
@@ -46,6 +46,7 @@ fn bench(label: &str, img: &GrayImage, rig: &Rig, reps: usize) {
         .collect();
     times.sort();
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    let stages = stage_split(&mut finder, img, rig, reps);
     println!(
         "{label} ({}×{}): median {:.2} ms (min {:.2}, p90 {:.2}) over {reps} runs; {} faces, {corners} corners{}",
         img.width(),
@@ -59,6 +60,44 @@ fn bench(label: &str, img: &GrayImage, rig: &Rig, reps: usize) {
             .map(|r| format!("; rejected: {}", r.reason))
             .unwrap_or_default()
     );
+    println!("    {stages}");
+}
+
+/// Median time of each stage of `detect` (front end, grid assembly, fit + completion, labelling).
+fn stage_split(finder: &mut CornerFinder, img: &GrayImage, rig: &Rig, reps: usize) -> String {
+    let max_lines = rig.faces.iter().map(|f| f.rows.max(f.cols)).max().unwrap();
+    let mut per_stage: [Vec<f64>; 4] = Default::default();
+    for _ in 0..reps {
+        let t0 = Instant::now();
+        let corners = finder.find(img).unwrap();
+        let t1 = Instant::now();
+        let grids = grid::assemble(&corners);
+        let t2 = Instant::now();
+        let completed: Vec<_> = grids
+            .iter()
+            .map(|g| complete::complete(img, &corners, g, max_lines))
+            .collect();
+        let t3 = Instant::now();
+        std::hint::black_box(label::label(img, rig, &completed));
+        let t4 = Instant::now();
+        for (i, (a, b)) in [(t0, t1), (t1, t2), (t2, t3), (t3, t4)]
+            .into_iter()
+            .enumerate()
+        {
+            per_stage[i].push((b - a).as_secs_f64() * 1e3);
+        }
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    format!(
+        "stages (median ms): front end {:.2}, grids {:.2}, fit+complete {:.2}, label {:.2}",
+        median(&mut per_stage[0]),
+        median(&mut per_stage[1]),
+        median(&mut per_stage[2]),
+        median(&mut per_stage[3])
+    )
 }
 
 fn main() {
