@@ -8,7 +8,9 @@
 //! vignetting 0.3; `hard`: 1280×960, fx 700, k1 −0.3, blur σ 1.5, noise σ 5, low contrast (reflectances
 //! 0.3 / 0.55), gamma 2.2, vignetting 0.3), number of random poses, cache directory (frames are
 //! rendered once and reused). Prints every face (angle from frontal, found or why not) and the
-//! summary by angle bucket, plus the detection time per frame.
+//! summary by angle bucket, plus the detection time per frame. `VERBOSE=1` prints every face and
+//! rejection; `FRONT=1` also prints the front end's recall per frame (true corners with a candidate
+//! within 1 px) and its number of candidates.
 #![allow(clippy::print_stdout, clippy::print_stderr)]
 
 use std::path::PathBuf;
@@ -30,6 +32,7 @@ fn main() -> anyhow::Result<()> {
             .unwrap_or("target/detect_eval"),
     );
     let verbose = std::env::var_os("VERBOSE").is_some();
+    let front = std::env::var_os("FRONT").is_some();
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
         .with_writer(std::io::stderr)
@@ -65,6 +68,9 @@ fn main() -> anyhow::Result<()> {
         let det = detect(&mut finder, &img, &rig)?;
         times.push(t.elapsed().as_secs_f64() * 1e3);
         let scores = score(&rig, &truth, &det);
+        if front {
+            front_end_recall(&mut finder, &img, &truth, k)?;
+        }
         for s in &scores {
             if !s.fully_visible && !s.found {
                 continue;
@@ -112,6 +118,40 @@ fn main() -> anyhow::Result<()> {
         "  detect time per frame (this build): median {:.1} ms, max {:.1} ms",
         times[times.len() / 2],
         times[times.len() - 1]
+    );
+    Ok(())
+}
+
+/// The front end alone against the ground truth: how many visible corners have a candidate within
+/// 1 px, and how many candidates there are.
+fn front_end_recall(
+    finder: &mut CornerFinder,
+    img: &image::GrayImage,
+    truth: &cubecal::capture::synthetic::GroundTruth,
+    frame: usize,
+) -> anyhow::Result<()> {
+    let candidates = finder.find(img)?;
+    let mut per_face: std::collections::BTreeMap<usize, (usize, usize)> = Default::default();
+    for c in truth.visible() {
+        let Some(uv) = c.uv else { continue };
+        let uv = nalgebra::Vector2::new(uv[0], uv[1]);
+        let near = candidates
+            .iter()
+            .map(|k| (k.uv - uv).norm())
+            .fold(f64::INFINITY, f64::min);
+        let hit = near < 1.0;
+        let e = per_face.entry(c.face_index).or_default();
+        e.0 += usize::from(hit);
+        e.1 += 1;
+    }
+    let faces: Vec<String> = per_face
+        .iter()
+        .map(|(f, (hit, n))| format!("face {f}: {hit}/{n}"))
+        .collect();
+    println!(
+        "frame {frame:3} front end: {} candidates; {}",
+        candidates.len(),
+        faces.join(", ")
     );
     Ok(())
 }

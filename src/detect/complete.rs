@@ -259,7 +259,11 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
             ) else {
                 continue;
             };
-            if let Some(f) = fit(img, p, a, b).filter(like_grid) {
+            let fitted = fit(img, p, a, b);
+            if let Some(f) = fitted.filter(|f| !like_grid(f)) {
+                tracing::trace!(r, c, ?p, uv = ?f.uv, contrast = f.contrast, residual = f.residual, median_contrast, median_residual, "recovered corner unlike the grid's");
+            }
+            if let Some(f) = fitted.filter(like_grid) {
                 cells.insert(
                     (r, c),
                     Fitted {

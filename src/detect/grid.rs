@@ -23,9 +23,12 @@ use super::XCorner;
 /// Largest number of corners considered (strongest first); bounds the time on cluttered frames.
 pub const MAX_CORNERS: usize = 2000;
 /// Tolerance on the angle between a link and a corner's edge direction (radians).
-pub const AXIS_TOLERANCE: f64 = 0.35;
+pub const AXIS_TOLERANCE: f64 = 0.2;
 /// A predicted position captures a corner within this fraction of the local step.
 pub const CAPTURE_RADIUS: f64 = 0.3;
+/// Largest ratio between a seed's two steps: a face seen at 78° from frontal foreshortens one
+/// direction by cos 78° ≈ 1/5.
+pub const MAX_STEP_RATIO: f64 = 5.0;
 /// Smallest grid kept: at least this many rows and columns.
 pub const MIN_LINES: usize = 3;
 
@@ -142,7 +145,7 @@ impl Builder<'_> {
         let (down, sd) = self.nearer_side(seed, s.axes[1])?;
         let l0 = (self.corners[right].uv - s.uv).norm();
         let l1 = (self.corners[down].uv - s.uv).norm();
-        if !(l0 / l1 > 0.5 && l0 / l1 < 2.0) {
+        if !(l0 / l1 > 1.0 / MAX_STEP_RATIO && l0 / l1 < MAX_STEP_RATIO) {
             return None;
         }
         // The seed cell must close: the fourth corner of the square sits where the parallelogram puts it.
