@@ -32,6 +32,7 @@ pub const MIN_SIDE: u32 = 32;
 
 /// Errors from the detector.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum DetectError {
     #[error("frame {width}×{height} is too small (minimum {MIN_SIDE}×{MIN_SIDE})")]
     TooSmall { width: u32, height: u32 },
