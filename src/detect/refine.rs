@@ -19,20 +19,23 @@
 //! profile `tanh` stands for the blurred step; its exact shape does not bias `c`, because both the true
 //! X-junction and the model are point-symmetric about the corner. Every pixel of the window contributes
 //! (a saddle fit in a fixed 7×7 window uses 49), which is what makes the fit hold up under noise and
-//! blur: the corner's variance falls with the edge length in the window, which is why the window
-//! reaches 0.65 of the way to the next corner (on the hard synthetic set, 0.42 → 0.65 with the
-//! half-extent cap 9 → 24 px took the corner RMS from 0.134 to 0.097 px). The fit's covariance `σ̂²(JᵀJ)⁻¹` is the per-corner quality figure ([`Refined::sigma_px`]):
-//! the standard deviation of the corner position implied by the residuals, valid for independent pixel
-//! noise (sensor noise; JPEG or demosaicing correlate neighbouring pixels and make it optimistic).
+//! blur. The corner's variance falls with the edge length in the window, hence a window reaching 0.65
+//! of the way to the next corner and a half-extent cap of 24 px (on the hard synthetic set, with the
+//! curvature correction below, the corner RMS went from 0.134 px at 0.42 / 9 px to 0.097 px). With
+//! `w > ½` the windows of neighbouring corners share the middle of their common edge, so their errors
+//! are mildly correlated. The fit's covariance `σ̂²(JᵀJ)⁻¹` is the per-corner quality figure
+//! ([`Refined::sigma_px`]): the standard deviation of the corner position implied by the residuals,
+//! valid for independent pixel noise (sensor noise; JPEG or demosaicing correlate neighbouring pixels
+//! and make it optimistic).
 //!
 //! The model's edges are straight, but lens distortion bends them, and a straight-line fit to a bent
 //! edge is biased towards its concave side by about `κL²/6` (curvature `κ`, half-length `L`): on the
 //! hard set (k1 −0.3) that is 0.05 px RMS of the corner in noise-free renders with this window. Fitting
-//! the curvatures as two more parameters removes the bias but doubles the corner's variance (the
-//! curvature is confounded with the line's offset). Instead the fit reports the first-order shift of
-//! the corner per unit curvature of each line ([`Refined::curvature_shift`], from the same normal
-//! equations) and [`super::complete`] applies it with curvatures measured on the lattice, where many
-//! corners determine them well (noise-free bias 0.047 → 0.026 px).
+//! the curvatures as two more parameters removes the bias but costs far more in variance (σ 0.072 →
+//! 0.118 px: the curvature is confounded with the line's offset). Instead the fit reports the
+//! first-order shift of the corner per unit curvature of each line ([`Refined::curvature_shift`], from
+//! the same normal equations) and [`super::complete`] applies it with curvatures measured on the
+//! lattice, where many corners determine them well (noise-free bias 0.047 → 0.026 px).
 //!
 //! Written here because no crate fits X-junction models: `chess-corners` refines with a saddle point
 //! in a fixed window, OpenCV's `cornerSubPix` is a gradient-orthogonality iteration in a fixed square.
@@ -42,8 +45,8 @@ use nalgebra::{Matrix2, SMatrix, SVector, Vector2};
 
 /// Half-size of the window in board units (the neighbouring corner is at 1).
 pub const WINDOW: f64 = 0.65;
-/// Largest window half-extent along a board axis, px (bounds the cost on large squares; beyond it
-/// the lens curvature grows faster than the information).
+/// Largest window half-extent along a board axis, px. It bounds the cost on large squares; on the
+/// hard set 16 / 20 / 24 / 30 px gave a corner RMS of 0.108 / 0.101 / 0.097 / 0.097 px.
 pub const MAX_HALF_PX: f64 = 24.0;
 /// Half-width of the bands around the two initial edge lines that make up the window, px: pixels
 /// farther than this from both lines (deep inside a square) are left out. A blurred edge is flat
