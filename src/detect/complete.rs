@@ -9,12 +9,17 @@
 //! accepted only when it converges near the prediction and its four quadrants alternate dark / bright
 //! (so the board's outer edge, a margin or the neighbouring face never pass for a corner); the lattice
 //! cannot grow beyond the largest face of the rig in either direction.
+//!
+//! Last, each corner is corrected for the curvature of its two lattice lines (lens distortion), which
+//! the straight-edge fit does not model: the curvature is measured by a parabola through the fitted
+//! corners along each line and applied with the fit's own first-order sensitivity
+//! ([`Refined::curvature_shift`]).
 
 // Ordered: recovery order must not depend on hashing (same frame, same result).
 use std::collections::BTreeMap;
 
 use image::GrayImage;
-use nalgebra::Vector2;
+use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 
 use super::XCorner;
 use super::grid::Grid;
@@ -156,6 +161,40 @@ fn extrapolate(cells: &Cells, r: i32, c: i32) -> Option<Vector2<f64>> {
     (n > 0.0).then(|| sum / n)
 }
 
+/// Corners on each side of a cell along a lattice line that feed its curvature estimate.
+pub const CURVATURE_RADIUS: i32 = 3;
+/// Fewest fitted corners (the cell's own included) on a lattice line for a curvature estimate.
+pub const CURVATURE_MIN_POINTS: usize = 4;
+
+/// Curvature (1/px, positive towards the left normal of the direction of increasing `(dr, dc)`) of
+/// the lattice line through the fitted cell `(r, c)` along `(dr, dc)`: a parabola fitted to the
+/// offsets of the fitted corners within [`CURVATURE_RADIUS`] from their chord. Perspective keeps
+/// lines straight; what bends them is lens distortion, which varies slowly across the image.
+fn lattice_curvature(cells: &Cells, r: i32, c: i32, dr: i32, dc: i32) -> Option<f64> {
+    let centre = cells.get(&(r, c))?.uv;
+    let pts: Vec<Vector2<f64>> = (-CURVATURE_RADIUS..=CURVATURE_RADIUS)
+        .filter_map(|k| cells.get(&(r + k * dr, c + k * dc)).map(|f| f.uv - centre))
+        .collect();
+    let (first, last) = (pts.first()?, pts.last()?);
+    if pts.len() < CURVATURE_MIN_POINTS {
+        return None;
+    }
+    let u = (last - first).try_normalize(1e-9)?;
+    let n = Vector2::new(-u.y, u.x);
+    // Least squares y = α + β·t + γ·t² through (t, y) = (u·p, n·p).
+    let mut ata = Matrix3::zeros();
+    let mut aty = Vector3::zeros();
+    for p in &pts {
+        let t = u.dot(p);
+        let row = Vector3::new(1.0, t, t * t);
+        ata += row * row.transpose();
+        aty += row * n.dot(p);
+    }
+    let sol = ata.cholesky()?.solve(&aty);
+    let kappa = 2.0 * sol.z;
+    kappa.is_finite().then_some(kappa)
+}
+
 fn fit(img: &GrayImage, p: Vector2<f64>, a: Vector2<f64>, b: Vector2<f64>) -> Option<Refined> {
     match refine::refine(img, p, a, b) {
         Ok(f) => Some(f),
@@ -185,6 +224,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
     }
     // Fit the assembled corners with steps from the front-end lattice.
     let mut cells: Cells = BTreeMap::new();
+    let mut shifts: BTreeMap<(i32, i32), Matrix2<f64>> = BTreeMap::new();
     let mut dropped = 0;
     let mut residuals = Vec::new();
     let mut contrasts = Vec::new();
@@ -198,6 +238,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
             Some(fit) => {
                 residuals.push(fit.residual);
                 contrasts.push(fit.contrast);
+                shifts.insert((r, c), fit.curvature_shift);
                 cells.insert(
                     (r, c),
                     Fitted {
@@ -264,6 +305,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
                 tracing::trace!(r, c, ?p, uv = ?f.uv, contrast = f.contrast, residual = f.residual, median_contrast, median_residual, "recovered corner unlike the grid's");
             }
             if let Some(f) = fitted.filter(like_grid) {
+                shifts.insert((r, c), f.curvature_shift);
                 cells.insert(
                     (r, c),
                     Fitted {
@@ -278,6 +320,24 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
         }
         if !added {
             break;
+        }
+    }
+    // The fits take the edge lines as straight; correct each corner for the curvature of its lattice
+    // lines (estimated from the straight-line fits: the bias they carry varies slowly along a line).
+    let corrected: Vec<((i32, i32), Vector2<f64>)> = cells
+        .iter()
+        .filter_map(|(&(r, c), f)| {
+            let shift = shifts.get(&(r, c))?;
+            let kappa = Vector2::new(
+                lattice_curvature(&cells, r, c, 0, 1).unwrap_or(0.0),
+                lattice_curvature(&cells, r, c, 1, 0).unwrap_or(0.0),
+            );
+            Some(((r, c), f.uv + shift * kappa))
+        })
+        .collect();
+    for (key, uv) in corrected {
+        if let Some(f) = cells.get_mut(&key) {
+            f.uv = uv;
         }
     }
     let Some((r0, r1, c0, c1)) = bounds(&cells) else {
@@ -314,4 +374,43 @@ fn bounds(cells: &Cells) -> Option<(i32, i32, i32, i32)> {
         (i32::MAX, i32::MIN, i32::MAX, i32::MIN),
         |(a, b, c, d), &(r, cc)| (a.min(r), b.max(r), c.min(cc), d.max(cc)),
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    fn cells_on(f: impl Fn(i32, i32) -> Vector2<f64>) -> Cells {
+        let mut cells = BTreeMap::new();
+        for r in 0..7 {
+            for c in 0..7 {
+                let uv = f(r, c);
+                cells.insert((r, c), Fitted { uv, sigma_px: 0.1 });
+            }
+        }
+        cells
+    }
+
+    #[test]
+    fn lattice_curvature_of_parabolic_rows_and_straight_columns() {
+        // Rows y = 10·r + κ·x²/2 (x from the middle column), bent towards +y, the left normal of +x.
+        let kappa = 2e-3;
+        let cells = cells_on(|r, c| {
+            let x = 12.0 * f64::from(c - 3);
+            Vector2::new(100.0 + x, 50.0 + 10.0 * f64::from(r) + 0.5 * kappa * x * x)
+        });
+        for c in 0..7 {
+            let k = lattice_curvature(&cells, 2, c, 0, 1).unwrap();
+            // Exact at the vertex, first order elsewhere (the chord tilts away from the tangent).
+            assert!((k - kappa).abs() < 0.1 * kappa, "column {c}: {k}");
+        }
+        // The columns are straight (the rows' bend is along them).
+        let k = lattice_curvature(&cells, 3, 3, 1, 0).unwrap();
+        assert!(k.abs() < 1e-9, "{k}");
+        // Three points make no estimate.
+        let mut few = cells.clone();
+        few.retain(|&(r, c), _| r != 4 || c < 3);
+        assert_eq!(lattice_curvature(&few, 4, 0, 0, 1), None);
+    }
 }
