@@ -13,7 +13,7 @@
 //!    [`MAX_SADDLE_OFFSET`]. This keeps X-junctions (point-symmetric: zero gradient at the centre) and
 //!    drops L-junctions, the corners of the outer squares against the board's margin, which have a
 //!    strong `R` too. The corner is placed at the saddle point. Its two edge directions come from the
-//!    ring of radius [`RING_RADIUS`] around it: four crossings of the mid level, opposite ones π apart
+//!    ring of radius [`RING_RADII`] around it: four crossings of the mid level, opposite ones π apart
 //!    (which rejects most candidates that noise or clutter produce).
 //!
 //! Positions are only starting points (a few tenths of a pixel): [`super::complete`] fits every corner
@@ -37,14 +37,16 @@ use super::{DetectError, MIN_SIDE, XCorner};
 
 /// Saddle response floor, in (grey levels per half-resolution pixel²)². A blurred (σ 1.5 px), noisy
 /// (σ 5) X-junction of 46 grey levels contrast gives ~100–300; sensor noise σ 5 alone stays below ~10.
-pub const RESPONSE_THRESHOLD: f32 = 30.0;
+pub const RESPONSE_THRESHOLD: f32 = 10.0;
 /// Non-maximum suppression radius (half-resolution pixels).
 pub const NMS_RADIUS: usize = 2;
 /// Largest distance (half-resolution pixels) from a response peak to the image's saddle point for the
 /// peak to count as an X-corner (see `corner_at`).
 pub const MAX_SADDLE_OFFSET: f64 = 1.0;
-/// Radius (full-resolution pixels) of the ring that gives a corner's edge directions.
-pub const RING_RADIUS: f64 = 6.0;
+/// Radii (full-resolution pixels) of the rings that give a corner's edge directions, tried in turn:
+/// the largest is the least biased by blur (see `ring_axes`), the smaller ones fit between the
+/// corners of squares foreshortened to a few pixels.
+pub const RING_RADII: [f64; 3] = [6.0, 4.0, 3.0];
 /// Samples on that ring.
 pub const RING_SAMPLES: usize = 32;
 /// Largest departure from π between opposite crossings of the ring (radians).
@@ -234,7 +236,9 @@ impl CornerFinder {
             return None;
         }
         let uv = Vector2::new(2.0 * (x as f64 + dx) + 0.5, 2.0 * (y as f64 + dy) + 0.5);
-        let axes = Self::ring_axes(img, uv)?;
+        let axes = RING_RADII
+            .iter()
+            .find_map(|&radius| Self::ring_axes(img, uv, radius))?;
         Some(XCorner {
             uv,
             axes,
@@ -243,7 +247,7 @@ impl CornerFinder {
     }
 
     /// The two edge directions of the X-junction at `c` (full-resolution pixels) from the ring of
-    /// radius [`RING_RADIUS`] around it in the frame itself, or `None` if the ring is not an
+    /// radius [`RING_RADII`] around it in the frame itself, or `None` if the ring is not an
     /// X-junction's or leaves the frame.
     ///
     /// Around an X-junction the ring crosses the mid level `(min + max)/2` exactly four times, at the
@@ -253,22 +257,19 @@ impl CornerFinder {
     /// angle, whatever the angle between the lines. (For the same reason the Hessian cannot give these
     /// directions: at the centre it is traceless, so its zero directions are always 90° apart.) Noise
     /// and clutter rarely give four point-symmetric crossings.
-    fn ring_axes(img: &GrayImage, c: Vector2<f64>) -> Option<[f64; 2]> {
+    fn ring_axes(img: &GrayImage, c: Vector2<f64>, radius: f64) -> Option<[f64; 2]> {
         let (w, h) = (f64::from(img.width()), f64::from(img.height()));
-        if c.x < RING_RADIUS + 1.0
-            || c.y < RING_RADIUS + 1.0
-            || c.x > w - RING_RADIUS - 2.0
-            || c.y > h - RING_RADIUS - 2.0
+        if c.x < radius + 1.0
+            || c.y < radius + 1.0
+            || c.x > w - radius - 2.0
+            || c.y > h - radius - 2.0
         {
             return None;
         }
         let mut ring = [0.0_f64; RING_SAMPLES];
         for (k, v) in ring.iter_mut().enumerate() {
             let theta = std::f64::consts::TAU * k as f64 / RING_SAMPLES as f64;
-            *v = bilinear(
-                img,
-                c + Vector2::new(theta.cos(), theta.sin()) * RING_RADIUS,
-            );
+            *v = bilinear(img, c + Vector2::new(theta.cos(), theta.sin()) * radius);
         }
         let (lo, hi) = ring
             .iter()
