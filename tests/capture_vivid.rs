@@ -282,19 +282,32 @@ fn checkerboard(w: u32, h: u32, square: u32, k: u32) -> (GrayImage, Vec<(f64, f6
     (img, corners)
 }
 
-/// Detect the corners in `captured` with the project's detector (X-corner front end + grid assembly)
-/// and compare them with the ground truth `gt`: every true corner must be found within
-/// [`LOOP_CORNER_TOLERANCE_PX`], and they must form one complete grid.
+/// Detect the corners in `captured` with the project's detector (X-corner front end, grid assembly,
+/// sub-pixel fit and completion of the largest grid) and compare them with the ground truth `gt`:
+/// every true corner must be found within [`LOOP_CORNER_TOLERANCE_PX`], and they must form one complete
+/// grid.
 fn detect_corners_and_compare_to_ground_truth(captured: &GrayImage, gt: &[(f64, f64)]) {
     let mut finder = cubecal::detect::CornerFinder::new().unwrap();
     let corners = finder.find(captured).unwrap();
     let grids = cubecal::detect::grid::assemble(&corners);
+    let fitted: Vec<nalgebra::Vector2<f64>> = grids
+        .first()
+        .map(|g| {
+            let lines = g.rows.max(g.cols) + 2;
+            cubecal::detect::complete::complete(captured, &corners, g, lines)
+                .cells
+                .into_iter()
+                .flatten()
+                .map(|f| f.uv)
+                .collect()
+        })
+        .unwrap_or_default();
     let mut worst = 0.0f64;
     let mut missing = 0;
     for &(x, y) in gt {
-        let best = corners
+        let best = fitted
             .iter()
-            .map(|c| ((c.uv.x - x).powi(2) + (c.uv.y - y).powi(2)).sqrt())
+            .map(|uv| ((uv.x - x).powi(2) + (uv.y - y).powi(2)).sqrt())
             .fold(f64::INFINITY, f64::min);
         if best > 1.0 {
             missing += 1;
@@ -302,7 +315,7 @@ fn detect_corners_and_compare_to_ground_truth(captured: &GrayImage, gt: &[(f64, 
             worst = worst.max(best);
         }
     }
-    let largest = grids.first().map_or(0, |g| g.count());
+    let largest = fitted.len();
     println!(
         "corner detector on the captured frame: {} of {} ground-truth corners found, max error {worst:.4} px, largest grid {largest} corners",
         gt.len() - missing,
