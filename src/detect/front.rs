@@ -35,8 +35,10 @@ use nalgebra::Vector2;
 
 use super::{DetectError, MIN_SIDE, XCorner};
 
-/// Saddle response floor, in (grey levels per half-resolution pixel²)². A blurred (σ 1.5 px), noisy
-/// (σ 5) X-junction of 46 grey levels contrast gives ~100–300; sensor noise σ 5 alone stays below ~10.
+/// Saddle response floor, in (grey levels per half-resolution pixel²)². Measured on the hard synthetic
+/// set (contrast 46 grey levels, blur σ 1.5 px, noise σ 5): a floor of 30 found 22 of the 38 faces
+/// seen at < 75°, 10 finds 32, 5 no more than 10; false candidates are removed by the saddle and ring
+/// tests and by grid assembly.
 pub const RESPONSE_THRESHOLD: f32 = 10.0;
 /// Non-maximum suppression radius (half-resolution pixels).
 pub const NMS_RADIUS: usize = 2;
