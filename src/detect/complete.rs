@@ -19,12 +19,11 @@
 use std::collections::BTreeMap;
 
 use image::GrayImage;
-use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
+use nalgebra::{Matrix2, Matrix3, SMatrix, SVector, Vector2, Vector3};
 
 use super::XCorner;
 use super::grid::Grid;
 use super::refine::{self, Refined};
-use crate::calib::linear::homography;
 
 /// A fitted corner.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -124,17 +123,57 @@ fn predict(cells: &Cells, r: i32, c: i32) -> Option<Vector2<f64>> {
     if plane.len() >= 6
         && rows.len() >= 2
         && cols.len() >= 2
-        && let Ok(h) = homography(&plane, &image)
+        && let Some(uv) = image_of_origin(&plane, &image)
     {
-        let p = h * nalgebra::Vector3::new(0.0, 0.0, 1.0);
-        if p.z.abs() > 1e-12 {
-            let uv = Vector2::new(p.x / p.z, p.y / p.z);
-            if uv.iter().all(|v| v.is_finite()) {
-                return Some(uv);
-            }
-        }
+        return Some(uv);
     }
     extrapolate(cells, r, c)
+}
+
+/// The image of the plane's origin under the homography fitted (DLT) to `plane` → `image`.
+///
+/// The origin is the cell being predicted, so it is never mapped to infinity and the homography can
+/// be normalised by `H₃₃ = 1`: eight unknowns from the normal equations, with the image points
+/// centred and scaled (Hartley) — a fraction of the cost of the general SVD solution
+/// ([`crate::calib::linear::homography`]), which this is called too often for (every empty cell
+/// around every grid).
+fn image_of_origin(plane: &[Vector2<f64>], image: &[Vector2<f64>]) -> Option<Vector2<f64>> {
+    let n = image.len() as f64;
+    let centre = image.iter().sum::<Vector2<f64>>() / n;
+    let scale = (image
+        .iter()
+        .map(|p| (p - centre).norm_squared())
+        .sum::<f64>()
+        / n)
+        .sqrt();
+    if !(scale.is_finite() && scale > 1e-9) {
+        return None;
+    }
+    // With h = (h₁₁ h₁₂ h₁₃ h₂₁ h₂₂ h₂₃ h₃₁ h₃₂) and H₃₃ = 1, each correspondence (x, y) → (u, v)
+    // gives u = h₁₁x + h₁₂y + h₁₃ − h₃₁xu − h₃₂yu and the same for v.
+    let mut ata = SMatrix::<f64, 8, 8>::zeros();
+    let mut atb = SVector::<f64, 8>::zeros();
+    for (q, p) in plane.iter().zip(image) {
+        let (x, y) = (q.x, q.y);
+        let uv = (p - centre) / scale;
+        let rows = [
+            (
+                SVector::<f64, 8>::from([x, y, 1.0, 0.0, 0.0, 0.0, -x * uv.x, -y * uv.x]),
+                uv.x,
+            ),
+            (
+                SVector::<f64, 8>::from([0.0, 0.0, 0.0, x, y, 1.0, -x * uv.y, -y * uv.y]),
+                uv.y,
+            ),
+        ];
+        for (row, rhs) in rows {
+            ata.ger(1.0, &row, &row, 1.0);
+            atb.axpy(rhs, &row, 1.0);
+        }
+    }
+    let h = ata.cholesky()?.solve(&atb);
+    let uv = centre + Vector2::new(h[2], h[5]) * scale;
+    uv.iter().all(|v| v.is_finite()).then_some(uv)
 }
 
 /// Predicted position of an empty cell from the filled cells before it along rows and columns.
@@ -390,6 +429,29 @@ mod tests {
             }
         }
         cells
+    }
+
+    #[test]
+    fn the_origin_is_predicted_exactly_under_a_strong_perspective() {
+        // A lattice seen obliquely: cells on one side of the target only (extrapolation).
+        let h = Matrix3::new(30.0, 4.0, 640.0, -3.0, 22.0, 480.0, 2e-2, -1.5e-2, 1.0);
+        let project = |x: f64, y: f64| {
+            let p = h * Vector3::new(x, y, 1.0);
+            Vector2::new(p.x / p.z, p.y / p.z)
+        };
+        let (mut plane, mut image) = (Vec::new(), Vec::new());
+        for dr in -3..=0 {
+            for dc in 1..=3 {
+                let q = Vector2::new(f64::from(dc), f64::from(dr));
+                plane.push(q);
+                image.push(project(q.x, q.y));
+            }
+        }
+        let uv = image_of_origin(&plane, &image).unwrap();
+        assert!((uv - project(0.0, 0.0)).norm() < 1e-6, "{uv:?}");
+        // All cells at one point: no scale, no prediction.
+        let same = vec![Vector2::new(5.0, 5.0); 6];
+        assert_eq!(image_of_origin(&plane[..6], &same), None);
     }
 
     #[test]
