@@ -206,7 +206,10 @@ impl Window {
         step: usize,
     ) {
         let k = values.len();
-        self.x.extend((0..k).map(|i| dx0 + (i * step) as f32));
+        // (Through i32: converting a usize to f32 is a slow sequence on x86-64.)
+        let step = step as i32;
+        self.x
+            .extend((0..k as i32).map(|i| dx0 + (i * step) as f32));
         self.y.extend(std::iter::repeat_n(dy, k));
         self.v.extend(values.map(f32::from));
         self.n += k;
@@ -264,7 +267,7 @@ fn slab(nx: f64, c: f64, half: f64) -> Option<(f64, f64)> {
         return (c.abs() <= half).then_some((f64::NEG_INFINITY, f64::INFINITY));
     }
     let (lo, hi) = ((-half - c) / nx, (half - c) / nx);
-    Some((lo.min(hi), lo.max(hi)))
+    Some(if lo <= hi { (lo, hi) } else { (hi, lo) })
 }
 
 /// The lines' geometry a window's bands follow: their crossing (relative to `p0`) and unit normals.
@@ -327,25 +330,30 @@ fn window(
         ) else {
             continue;
         };
-        let (lo, hi) = (sa.0.max(sb.0), sa.1.min(sb.1));
+        let lo = if sa.0 > sb.0 { sa.0 } else { sb.0 };
+        let hi = if sa.1 < sb.1 { sa.1 } else { sb.1 };
         if lo > hi {
             continue;
         }
+        // The two bands' spans within the parallelogram's, the one starting first first (an empty
+        // span has its start past its end).
+        let clip = |band: Option<(f64, f64)>| match band {
+            Some((l, u)) => (if l > lo { l } else { lo }, if u < hi { u } else { hi }),
+            None => (f64::INFINITY, f64::NEG_INFINITY),
+        };
         let mut spans = [
-            slab(na.x, na.y * dy - nc[0], bands.half_width),
-            slab(nb.x, nb.y * dy - nc[1], bands.half_width),
-        ]
-        .map(|band| {
-            band.map(|(l, u)| (l.max(lo), u.min(hi)))
-                .filter(|(l, u)| l <= u)
-        });
-        spans.sort_by(|p, q| match (p, q) {
-            (Some(p), Some(q)) => p.0.total_cmp(&q.0),
-            _ => q.is_some().cmp(&p.is_some()),
-        });
-        // Pixel columns of the (sorted) bands, each taken once.
+            clip(slab(na.x, na.y * dy - nc[0], bands.half_width)),
+            clip(slab(nb.x, nb.y * dy - nc[1], bands.half_width)),
+        ];
+        if spans[1].0 < spans[0].0 {
+            spans.swap(0, 1);
+        }
+        // Pixel columns of the bands, each taken once.
         let mut next = i64::MIN;
-        for (l, u) in spans.into_iter().flatten() {
+        for (l, u) in spans {
+            if l > u {
+                continue;
+            }
             let x0 = ceil(p0.x + l).max(next);
             let x1 = floor(p0.x + u);
             if x1 < x0 {
