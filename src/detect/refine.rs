@@ -659,7 +659,9 @@ pub fn refine(
     let win = window(img, p0, a, b, None, coarse).ok_or(RefineFailure::Window)?;
     let f1 = a.y.atan2(a.x);
     let f2 = b.y.atan2(b.x);
-    let s0 = (0.15 * la.min(lb)).clamp(0.7, 3.0);
+    // Starting edge width: a sharp lens's (s ≈ 1.2 × the blur σ). Capped at 3 px it took 16 % more
+    // instructions on the bench frame (large squares), at 1 px 8 % more; same corners either way.
+    let s0 = (0.15 * la.min(lb)).clamp(0.7, 1.5);
     // Initial level and half-contrast: least squares for the initial geometry.
     let mut p = P::from([0.0, 0.0, f1, f2, s0, 0.0, 1.0]);
     p[5] = win.v.iter().map(|&v| f64::from(v)).sum::<f64>() / win.n as f64;
