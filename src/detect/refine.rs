@@ -503,11 +503,14 @@ fn lane_sum(acc: &Lane) -> f64 {
 }
 
 /// The normal equations of the model at `p` (coordinates relative to `p0`): `JᵀJ`, `Jᵀr` and the sum
-/// of squared residuals.
-fn accumulate(win: &Window, p: &P) -> (SMatrix<f64, 7, 7>, P, f64) {
+/// of squared residuals; with `CURVATURE`, also `Jᵀ J_κ`, the cross products with the residuals'
+/// derivatives in the two lines' curvatures `κ` (`∂dᵢ/∂κᵢ = −tᵢ²/2`, see
+/// [`Refined::curvature_shift`]), zero otherwise.
+fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
     let md = Model::new(p);
     // Upper triangle of [J r]ᵀ[J r], row by row, one lane per pixel of a group.
     let mut acc = [[0.0_f32; LANES]; 36];
+    let mut cross = [[[0.0_f32; LANES]; 7]; 2];
     for grp in win.groups() {
         let e = eval(&grp, &md);
         let rows = [e.j[0], e.j[1], e.j[2], e.j[3], e.j[4], e.j[5], e.j[6], e.r];
@@ -526,55 +529,65 @@ fn accumulate(win: &Window, p: &P) -> (SMatrix<f64, 7, 7>, P, f64) {
             10: 1 3, 11: 1 4, 12: 1 5, 13: 1 6, 14: 1 7, 15: 2 2, 16: 2 3, 17: 2 4, 18: 2 5, 19: 2 6,
             20: 2 7, 21: 3 3, 22: 3 4, 23: 3 5, 24: 3 6, 25: 3 7, 26: 4 4, 27: 4 5, 28: 4 6, 29: 4 7,
             30: 5 5, 31: 5 6, 32: 5 7, 33: 6 6, 34: 6 7, 35: 7 7);
+        if CURVATURE {
+            for i in 0..LANES {
+                let jk = [
+                    -0.5 * e.dg1[i] * e.t1[i] * e.t1[i],
+                    -0.5 * e.dg2[i] * e.t2[i] * e.t2[i],
+                ];
+                for (k, jk) in jk.iter().enumerate() {
+                    for a in 0..7 {
+                        cross[k][a][i] += e.j[a][i] * jk;
+                    }
+                }
+            }
+        }
     }
-    let mut jtj = SMatrix::<f64, 7, 7>::zeros();
-    let mut jtr = P::zeros();
+    let mut out = Normal {
+        jtj: SMatrix::zeros(),
+        jtr: P::zeros(),
+        ssr: 0.0,
+        cross: SMatrix::zeros(),
+    };
     let mut k = 0;
     for a in 0..8 {
         for b in a..8 {
             let v = lane_sum(&acc[k]);
             match (a, b) {
-                (7, 7) => return (jtj, jtr, v),
-                (_, 7) => jtr[a] = v,
+                (7, 7) => out.ssr = v,
+                (_, 7) => out.jtr[a] = v,
                 _ => {
-                    jtj[(a, b)] = v;
-                    jtj[(b, a)] = v;
+                    out.jtj[(a, b)] = v;
+                    out.jtj[(b, a)] = v;
                 }
             }
             k += 1;
         }
     }
-    (jtj, jtr, 0.0)
-}
-
-/// The first-order shift of the corner per unit curvature of each line ([`Refined::curvature_shift`]) at
-/// the converged straight-line fit `p` with normal matrix `jtj`: with the curvatures held at `κ`
-/// instead of 0, the normal equations move the seven parameters by `−(JᵀJ)⁻¹·Jᵀ J_κ·κ`, where
-/// `J_κ` are the residuals' derivatives in `κ` (`∂dᵢ/∂κᵢ = −tᵢ²/2`).
-fn curvature_shift(win: &Window, p: &P, jtj: &SMatrix<f64, 7, 7>) -> Option<Matrix2<f64>> {
-    let md = Model::new(p);
-    let mut acc = [[[0.0_f32; LANES]; 7]; 2];
-    for grp in win.groups() {
-        let e = eval(&grp, &md);
-        for i in 0..LANES {
-            let jk = [
-                -0.5 * e.dg1[i] * e.t1[i] * e.t1[i],
-                -0.5 * e.dg2[i] * e.t2[i] * e.t2[i],
-            ];
-            for (k, jk) in jk.iter().enumerate() {
-                for a in 0..7 {
-                    acc[k][a][i] += e.j[a][i] * jk;
-                }
+    if CURVATURE {
+        for k in 0..2 {
+            for a in 0..7 {
+                out.cross[(a, k)] = lane_sum(&cross[k][a]);
             }
         }
     }
-    let mut cross = SMatrix::<f64, 7, 2>::zeros();
-    for k in 0..2 {
-        for a in 0..7 {
-            cross[(a, k)] = lane_sum(&acc[k][a]);
-        }
-    }
-    let shift = -(jtj.cholesky()?.solve(&cross));
+    out
+}
+
+/// The normal equations at one point (see [`accumulate`]).
+struct Normal {
+    jtj: SMatrix<f64, 7, 7>,
+    jtr: P,
+    ssr: f64,
+    cross: SMatrix<f64, 7, 2>,
+}
+
+/// The first-order shift of the corner per unit curvature of each line ([`Refined::curvature_shift`]) at
+/// a converged straight-line fit with normal equations `n` (accumulated with the curvature terms):
+/// with the curvatures held at `κ` instead of 0, the normal equations move the seven parameters by
+/// `−(JᵀJ)⁻¹·Jᵀ J_κ·κ`.
+fn curvature_shift(n: &Normal) -> Option<Matrix2<f64>> {
+    let shift = -(n.jtj.cholesky()?.solve(&n.cross));
     Some(shift.fixed_view::<2, 2>(0, 0).into_owned())
 }
 
@@ -675,7 +688,7 @@ pub fn refine(
         .try_inverse()
         .ok_or(RefineFailure::Degenerate)?;
     let mut lambda = 1e-3;
-    let start = solve(&win, p, &mut lambda, &COARSE, &to_board)?;
+    let start = solve::<false>(&win, p, &mut lambda, &COARSE, &to_board)?;
     // Stage 2 on every pixel within a few edge widths of the lines found.
     let bands = Bands {
         centre: Vector2::new(start.p[0], start.p[1]),
@@ -684,7 +697,8 @@ pub fn refine(
             .clamp(MIN_FINE_BAND_PX, BAND_PX),
     };
     let win = window(img, p0, a, b, Some(bands), false).ok_or(RefineFailure::Window)?;
-    let Fit { p, jtj, ssr } = solve(&win, start.p, &mut lambda, &FINE, &to_board)?;
+    let Fit { p, normal } = solve::<true>(&win, start.p, &mut lambda, &FINE, &to_board)?;
+    let (jtj, ssr) = (normal.jtj, normal.ssr);
     let c = Vector2::new(p[0], p[1]);
     if !c.iter().all(|v| v.is_finite()) {
         return Err(RefineFailure::Degenerate);
@@ -710,7 +724,7 @@ pub fn refine(
         return Err(RefineFailure::NotX);
     }
     let sigma_px = ((cov[(0, 0)] + cov[(1, 1)]) / 2.0).max(0.0).sqrt();
-    let curvature_shift = curvature_shift(&win, &p, &jtj).ok_or(RefineFailure::Degenerate)?;
+    let curvature_shift = curvature_shift(&normal).ok_or(RefineFailure::Degenerate)?;
     Ok(Refined {
         uv: p0 + c,
         sigma_px,
@@ -733,28 +747,29 @@ struct Tolerance {
     decrease: f64,
 }
 
-/// A converged fit: parameters, normal matrix and sum of squared residuals (at `p`, or at a point
-/// within the last, negligible, step of it).
+/// A converged fit: parameters, and the normal equations at `p` or at a point within the last,
+/// negligible, step of it (the sum of squares then as predicted for `p`).
 struct Fit {
     p: P,
-    jtj: SMatrix<f64, 7, 7>,
-    ssr: f64,
+    normal: Normal,
 }
 
-/// Levenberg–Marquardt from `p` on `win` until a step moves the corner less than `converged` px.
-/// That last step is taken without evaluating the model again: from that close, one Gauss–Newton
-/// step lands within about its square of the optimum, and the normal matrix there is the same to
-/// that order. `to_board` maps image offsets to board units (to stop fits that run away).
-fn solve(
+/// Levenberg–Marquardt from `p` on `win` until a step is within `tol`. That last step is taken
+/// without evaluating the model again: from that close, one Gauss–Newton step lands within about
+/// its square of the optimum, and the normal matrix there is the same to that order. `to_board` maps
+/// image offsets to board units (to stop fits that run away). With `CURVATURE`, the normal equations
+/// carry the curvature terms.
+fn solve<const CURVATURE: bool>(
     win: &Window,
     mut p: P,
     lambda: &mut f64,
     tol: &Tolerance,
     to_board: &Matrix2<f64>,
 ) -> Result<Fit, RefineFailure> {
-    let (mut jtj, mut jtr, mut ssr) = accumulate(win, &p);
+    let mut normal = accumulate::<CURVATURE>(win, &p);
     for _ in 0..MAX_ITERATIONS {
-        let mut a_mat = jtj;
+        let (jtj, jtr, ssr) = (&normal.jtj, &normal.jtr, normal.ssr);
+        let mut a_mat = *jtj;
         for i in 0..7 {
             a_mat[(i, i)] += *lambda * jtj[(i, i)].max(1e-12);
         }
@@ -770,29 +785,24 @@ fn solve(
         cand[4] = cand[4].abs().max(0.2);
         // The sum of squares after the step, as the linearised model predicts it (exact in the
         // linear parameters m and h, second-order in the others).
-        let predicted = ssr + 2.0 * step.dot(&jtr) + step.dot(&(jtj * step));
+        let predicted = ssr + 2.0 * step.dot(jtr) + step.dot(&(jtj * step));
         if step[0].hypot(step[1]) < tol.position_px
             && step[2].abs().max(step[3].abs()) < tol.angle
             && step[4].abs() < tol.width * p[4]
             && ssr - predicted < tol.decrease * ssr
         {
-            return Ok(Fit {
-                p: cand,
-                jtj,
-                ssr: predicted.clamp(0.0, ssr),
-            });
+            normal.ssr = predicted.clamp(0.0, ssr);
+            return Ok(Fit { p: cand, normal });
         }
-        let (j2, r2, s2) = accumulate(win, &cand);
-        if s2.is_finite() && s2 < ssr {
+        let next = accumulate::<CURVATURE>(win, &cand);
+        if next.ssr.is_finite() && next.ssr < ssr {
             p = cand;
             // A fit running away from its start will be rejected: stop paying for it.
             let st = to_board * Vector2::new(p[0], p[1]);
             if st.x.abs() > 2.0 * MAX_SHIFT || st.y.abs() > 2.0 * MAX_SHIFT {
                 return Err(RefineFailure::Moved);
             }
-            jtj = j2;
-            jtr = r2;
-            ssr = s2;
+            normal = next;
             *lambda = (*lambda * 0.3).max(1e-9);
         } else {
             *lambda *= 10.0;
@@ -801,7 +811,7 @@ fn solve(
             }
         }
     }
-    Ok(Fit { p, jtj, ssr })
+    Ok(Fit { p, normal })
 }
 
 #[cfg(test)]
