@@ -16,30 +16,34 @@
 //!      [`END_UNIFORMITY`] of the two half a step back (the board's outer squares, which must differ by
 //!      [`MIN_COLOUR_CONTRAST`]): a continuing board would show two squares of opposite colours there,
 //!      a board's end shows its uniform margin. Otherwise the X-junction fit of [`super::refine`] is
-//!      run there: no fit, or a fit unlike the grid's corners (residual and contrast against the
+//!      run there, and no fit, or a fit unlike the grid's corners (residual and contrast against the
 //!      medians of the next line inward, with the thresholds [`super::complete`] uses to accept a
-//!      recovered corner), is empty too;
+//!      recovered corner), makes the position empty too — unless the squares beyond look checkered
+//!      (opposite difference, at least [`CONTINUED_CONTRAST`] of the inner one): a fit that fails
+//!      there may have missed a real corner (the grid stopped growing precisely because fits failed,
+//!      e.g. at a foreshortened far end), so the position proves nothing;
 //!    * a fit like the grid's corners at any position drops the grid (it may continue);
 //!    * positions outside the image, or whose fit window the border clips (the fit refuses it),
 //!      prove nothing;
 //!    * each side needs [`MIN_EMPTY_BEYOND`] empty positions, else the grid is dropped: "grid may
-//!      continue beyond the frame border". A board is a rectangle, so one line of corners either
-//!      continues along the whole side or not at all, and two positions seen empty prove the side
-//!      without needing the whole next line inside the frame (fully visible boards often have it
-//!      partly outside).
+//!      continue beyond the frame border" (or "beyond its side"). A board is a rectangle, so a line
+//!      of corners either continues along the whole side or not at all, and two positions seen empty
+//!      prove the side without needing the whole next line inside the frame (fully visible boards
+//!      often have it partly outside).
 //!
 //!    The position beyond a cube face's outermost line is on the face's own margin (12 mm margin,
 //!    16 mm squares: 0.75 step), never on the neighbouring face, so faces meeting at the cube's
 //!    edges keep their proof. Measured: on the realistic and hard synthetic sets (24 frames each,
 //!    k1 −0.1 / −0.3, faces up to 90°) every position beyond every face found is empty by the
 //!    colour test alone and no face is lost (realistic 52/53 faces < 75°, hard 32/38, as before);
-//!    on the 26 OpenCV sample images every board is kept: the fewest empty positions on a side is 3
-//!    (the next line is partly outside the image or too close to its border in 11 images), the
-//!    colour test is inconclusive at 493 positions (the printed board's white margin is narrower
-//!    than half a square: the samples beyond fall on its dark rim or the background) and the fit
-//!    found no corner like the grid's at any of them (the nearest had 1.7 times the residual
-//!    threshold and 0.09 of the contrast; the others at least 2.4 times the residual threshold).
-//!    The check costs 0.2–0.4 ms per frame.
+//!    on the 26 OpenCV sample images every board is kept, but the printed board's white margin is
+//!    narrower than half a square, so the samples beyond fall on its dark rim or the background and
+//!    320 positions reach the fit: 18 clipped, 111 fits all unlike the grid's corners (residual at
+//!    least 2.4 times the threshold), 191 failed fits; 83 of the positions are undecided (the
+//!    background looks checkered as often as not). The fewest empty positions on a side is 2
+//!    (left03.jpg, whose next line is partly outside the image), 3 on four more sides, and the next
+//!    line is partly outside the image or too close to its border in 11 images. The check costs
+//!    0.2–0.4 ms per frame.
 //! 4. **Orientation.** For a board that is not 180°-symmetric, the two remaining labellings predict
 //!    opposite colours for every square: the mean intensity of the squares predicted white must exceed
 //!    that of the squares predicted black by a clear margin, or the grid is dropped.
@@ -69,6 +73,9 @@ pub const MIN_EMPTY_BEYOND: usize = 2;
 /// One step beyond a grid's side, the two squares half a step further out may differ by at most this
 /// fraction of the two inside for the board's end to be clear without a corner fit.
 pub const END_UNIFORMITY: f64 = 0.3;
+/// Squares beyond a grid's side whose difference has the opposite sign of the outer squares' and at
+/// least this fraction of it look like a continuing board.
+pub const CONTINUED_CONTRAST: f64 = 0.5;
 
 /// One labelled corner.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -468,6 +475,9 @@ struct SideBeyond {
     clipped: usize,
     /// Positions beyond with an unclipped window where the fit finds no corner like the grid's.
     empty: usize,
+    /// Positions beyond with squares of opposite colours (as on a continuing board) where the fit
+    /// finds no corner like the grid's: neither proof nor veto.
+    undecided: usize,
     /// Positions beyond where the corner fit found a corner like the grid's.
     corners: Vec<Vector2<f64>>,
     /// Positions beyond (the side's number of corners).
@@ -512,21 +522,21 @@ fn mean_3x3(img: &GrayImage, p: Vector2<f64>) -> Option<f64> {
     Some(sum / 9.0)
 }
 
-/// Whether the image around `p` (one step beyond a grid's outermost corner, steps `along` the side and
-/// `outward`) clearly shows the board's end: the two squares inside (the board's outer squares, half a
-/// step back) differ by at least [`MIN_COLOUR_CONTRAST`], and the two half a step beyond (margin) by
-/// at most [`END_UNIFORMITY`] of that. A continuing board would show two squares of opposite colours
-/// beyond as well. `None` when a sample is outside the image.
-fn clearly_ends(
+/// The squares around `p`, one step beyond a grid's outermost corner (steps `along` the side and
+/// `outward`): the intensity difference along the side between the two squares half a step back (the
+/// board's outer squares) and between the two half a step beyond. `None` when a sample is outside the
+/// image.
+fn square_pattern(
     img: &GrayImage,
     p: Vector2<f64>,
     along: Vector2<f64>,
     outward: Vector2<f64>,
-) -> Option<bool> {
+) -> Option<(f64, f64)> {
     let at = |s: f64, t: f64| mean_3x3(img, p + along * s + outward * t);
-    let d_in = at(0.5, -0.5)? - at(-0.5, -0.5)?;
-    let d_out = at(0.5, 0.5)? - at(-0.5, 0.5)?;
-    Some(d_in.abs() >= MIN_COLOUR_CONTRAST && d_out.abs() <= END_UNIFORMITY * d_in.abs())
+    Some((
+        at(0.5, -0.5)? - at(-0.5, -0.5)?,
+        at(0.5, 0.5)? - at(-0.5, 0.5)?,
+    ))
 }
 
 fn look_beyond(img: &GrayImage, d: &Dense, side: Side) -> SideBeyond {
@@ -561,6 +571,7 @@ fn look_beyond(img: &GrayImage, d: &Dense, side: Side) -> SideBeyond {
         outside: 0,
         clipped: 0,
         empty: 0,
+        undecided: 0,
         corners: Vec::new(),
         n,
     };
@@ -572,10 +583,21 @@ fn look_beyond(img: &GrayImage, d: &Dense, side: Side) -> SideBeyond {
             out.outside += 1;
             continue;
         }
-        if clearly_ends(img, p, along, outward) == Some(true) {
+        let pattern = square_pattern(img, p, along, outward);
+        let contrasted = pattern.is_some_and(|(d_in, _)| d_in.abs() >= MIN_COLOUR_CONTRAST);
+        // The board's uniform margin beyond its outer squares.
+        if contrasted
+            && pattern.is_some_and(|(d_in, d_out)| d_out.abs() <= END_UNIFORMITY * d_in.abs())
+        {
             out.empty += 1;
             continue;
         }
+        // Squares of opposite colours beyond, as a continuing board has.
+        let checkered = contrasted
+            && pattern.is_some_and(|(d_in, d_out)| {
+                d_in * d_out < 0.0 && d_out.abs() >= CONTINUED_CONTRAST * d_in.abs()
+            });
+        tracing::debug!(?side, i, ?pattern, checkered, "squares beyond the grid");
         match refine::refine(img, p, along, outward) {
             Ok(f) => {
                 let medians = reference();
@@ -585,15 +607,23 @@ fn look_beyond(img: &GrayImage, d: &Dense, side: Side) -> SideBeyond {
                 tracing::debug!(?side, i, uv = ?f.uv, contrast = f.contrast, residual = f.residual, ?medians, like_grid, "corner fit beyond the grid");
                 if like_grid {
                     out.corners.push(f.uv);
+                } else if checkered {
+                    out.undecided += 1;
                 } else {
                     out.empty += 1;
                 }
             }
             // The window is clipped by the border (or has too few pixels): nothing is proven.
             Err(RefineFailure::Window) => out.clipped += 1,
+            // A failed fit where the squares look checkered is no proof: the fit may have missed
+            // a real corner (a poor prediction, blur, foreshortening).
             Err(why) => {
                 tracing::debug!(?side, i, ?p, ?why, "no corner fit beyond the grid");
-                out.empty += 1;
+                if checkered {
+                    out.undecided += 1;
+                } else {
+                    out.empty += 1;
+                }
             }
         }
     }
@@ -611,6 +641,7 @@ fn check_extent(img: &GrayImage, d: &Dense) -> Result<(), String> {
             outside = b.outside,
             clipped = b.clipped,
             empty = b.empty,
+            undecided = b.undecided,
             corners = b.corners.len(),
             n = b.n,
             "one step beyond the grid"
@@ -623,11 +654,17 @@ fn check_extent(img: &GrayImage, d: &Dense) -> Result<(), String> {
             ));
         }
         if b.empty < MIN_EMPTY_BEYOND.min(b.n) {
+            let wher = if b.outside + b.clipped > 0 {
+                format!("beyond the frame border (side towards the image {towards})")
+            } else {
+                format!("beyond its side towards the image {towards}")
+            };
             return Err(format!(
-                "grid may continue beyond the frame border (side towards the image {towards}): of the {} positions one step beyond it, {} are outside the image, {} too close to the border for a corner fit, {} show no corner ({} needed)",
+                "grid may continue {wher}: of the {} positions one step beyond it, {} are outside the image, {} too close to the border for a corner fit, {} undecided (checkered squares, no corner fit), {} show no corner ({} needed)",
                 b.n,
                 b.outside,
                 b.clipped,
+                b.undecided,
                 b.empty,
                 MIN_EMPTY_BEYOND.min(b.n)
             ));
