@@ -806,4 +806,28 @@ mod tests {
             "{reason}"
         );
     }
+
+    #[test]
+    fn checkered_squares_beyond_a_grid_are_no_proof_of_its_end() {
+        // The 9×8 board, with its bottom margin replaced by a band of squares that continues the
+        // checkerboard's colours but is shifted by 0.3 square along the side: one step beyond the last
+        // row there is no X-corner to fit, yet the squares beyond are checkered, as on a board whose
+        // next row the fit misses.
+        let (s, x0, y0) = (24, 80, 80);
+        let mut img = board(400, 360, 9, 8, s, x0, y0);
+        let shift = 0.3 * s as f64;
+        for y in (y0 + 8 * s) as u32..(y0 + 9 * s) as u32 {
+            for x in (x0 - s) as u32..(x0 + 9 * s) as u32 {
+                let k = ((f64::from(x) - x0 as f64 - shift) / s as f64).floor() as i64;
+                let v = if (k + 8).rem_euclid(2) == 1 { 230 } else { 25 };
+                img.put_pixel(x, y, Luma([v]));
+            }
+        }
+        let reason = check_extent(&img, &grid(0..8, 0..9, s, x0, y0)).unwrap_err();
+        assert!(
+            reason.contains("beyond its side towards the image bottom"),
+            "{reason}"
+        );
+        assert!(reason.contains("0 show no corner"), "{reason}");
+    }
 }
