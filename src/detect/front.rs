@@ -238,19 +238,21 @@ impl CornerFinder {
             return None;
         }
         let uv = Vector2::new(2.0 * (x as f64 + dx) + 0.5, 2.0 * (y as f64 + dy) + 0.5);
-        let axes = RING_RADII
+        let (axes, dark) = RING_RADII
             .iter()
             .find_map(|&radius| Self::ring_axes(img, uv, radius))?;
         Some(XCorner {
             uv,
             axes,
+            dark,
             response: f64::from(self.resp[y * w + x]),
         })
     }
 
     /// The two edge directions of the X-junction at `c` (full-resolution pixels) from the ring of
-    /// radius [`RING_RADII`] around it in the frame itself, or `None` if the ring is not an
-    /// X-junction's or leaves the frame.
+    /// radius [`RING_RADII`] around it in the frame itself, and the direction of the bisector of its
+    /// dark quadrants ([`XCorner::dark`]), or `None` if the ring is not an X-junction's or leaves the
+    /// frame.
     ///
     /// Around an X-junction the ring crosses the mid level `(min + max)/2` exactly four times, at the
     /// two lines, and point symmetry puts opposite crossings π apart; each line's direction is the
@@ -259,7 +261,7 @@ impl CornerFinder {
     /// angle, whatever the angle between the lines. (For the same reason the Hessian cannot give these
     /// directions: at the centre it is traceless, so its zero directions are always 90° apart.) Noise
     /// and clutter rarely give four point-symmetric crossings.
-    fn ring_axes(img: &GrayImage, c: Vector2<f64>, radius: f64) -> Option<[f64; 2]> {
+    fn ring_axes(img: &GrayImage, c: Vector2<f64>, radius: f64) -> Option<([f64; 2], f64)> {
         let (w, h) = (f64::from(img.width()), f64::from(img.height()));
         if c.x < radius + 1.0
             || c.y < radius + 1.0
@@ -305,7 +307,27 @@ impl CornerFinder {
             }
             *axis = (0.5 * (a + b)).rem_euclid(pi);
         }
-        Some(axes)
+        // Polarity: the mean level of the quadrants between crossings 0–1 and 2–3 against the other
+        // two (crossings are in increasing angle, so these are opposite quadrants).
+        let (mut first, mut second) = ((0.0, 0.0_f64), (0.0, 0.0_f64));
+        for (k, v) in ring.iter().enumerate() {
+            let theta = std::f64::consts::TAU * k as f64 / RING_SAMPLES as f64;
+            let in_01 = theta > crossings[0] && theta < crossings[1];
+            let in_23 = theta > crossings[2] && theta < crossings[3];
+            let acc = if in_01 || in_23 {
+                &mut first
+            } else {
+                &mut second
+            };
+            acc.0 += v;
+            acc.1 += 1.0;
+        }
+        let dark = if first.0 * second.1 < second.0 * first.1 {
+            0.5 * (crossings[0] + crossings[1])
+        } else {
+            0.5 * (crossings[1] + crossings[2])
+        };
+        Some((axes, dark.rem_euclid(pi)))
     }
 }
 
@@ -398,6 +420,44 @@ mod tests {
             })
             .count();
         assert_eq!(stray, 0);
+    }
+
+    /// Neighbours along a row or column have opposite polarity: their dark-quadrant bisectors are
+    /// ~90° apart; diagonal neighbours have the same.
+    #[test]
+    fn polarity_alternates_along_rows_and_columns() {
+        let origin = Vector2::new(100.3, 90.7);
+        let (size, angle) = (17.0, 0.4_f64);
+        let img = board(240, 200, size, angle, origin);
+        let corners = CornerFinder::new().unwrap().find(&img).unwrap();
+        let (s, c) = angle.sin_cos();
+        let at = |i: i32, j: i32| {
+            let p = origin
+                + Vector2::new(c, s) * (f64::from(i) * size)
+                + Vector2::new(-s, c) * (f64::from(j) * size);
+            corners
+                .iter()
+                .find(|k| (k.uv - p).norm() < 1.0)
+                .map(|k| k.dark)
+        };
+        let mut pairs = 0;
+        for i in -3..=3 {
+            for j in -3..=3 {
+                let Some(d) = at(i, j) else { continue };
+                for (di, dj, flips) in [(1, 0, true), (0, 1, true), (1, 1, false), (1, -1, false)] {
+                    if let Some(e) = at(i + di, j + dj) {
+                        let diff = line_diff(d, e);
+                        if flips {
+                            assert!(diff > 1.2, "({i}, {j}) +({di}, {dj}): {diff}");
+                        } else {
+                            assert!(diff < 0.35, "({i}, {j}) +({di}, {dj}): {diff}");
+                        }
+                        pairs += 1;
+                    }
+                }
+            }
+        }
+        assert!(pairs > 100, "{pairs}");
     }
 
     #[test]
