@@ -242,7 +242,9 @@ impl CornerFinder {
             }
             (x, y) = (nx as usize, ny as usize);
             (dx, dy) = self.newton(x, y, w)?;
-            if dx.hypot(dy) > MAX_SADDLE_OFFSET {
+            // The saddle point must be a corner in its own right, not a weak structure that the
+            // first step reached.
+            if dx.hypot(dy) > MAX_SADDLE_OFFSET || self.resp[y * w + x] <= self.threshold {
                 return None;
             }
         }

@@ -252,6 +252,39 @@ impl Builder<'_> {
     }
 }
 
+/// Drops the corner of a boundary row or column that has only that one corner while the line next to
+/// it has [`MIN_LINES`] or more, until none is left: one corner beyond the edge of a lattice is more
+/// often a structure next to the board (its outer corner against the background is an X-junction
+/// too, with a compatible polarity: 4 of the 26 OpenCV sample images) than a line of the board whose
+/// other corners the front end all missed; completion recovers the corners of such a line anyway.
+fn prune_lone_lines(cells: &mut BTreeMap<(i32, i32), usize>) {
+    loop {
+        let count = |f: &dyn Fn(&(i32, i32)) -> bool| cells.keys().filter(|k| f(k)).count();
+        let (rmin, rmax, cmin, cmax) = cells.keys().fold(
+            (i32::MAX, i32::MIN, i32::MAX, i32::MIN),
+            |(a, b, c, d), &(r, cc)| (a.min(r), b.max(r), c.min(cc), d.max(cc)),
+        );
+        let lone = [(rmin, 1), (rmax, -1)]
+            .iter()
+            .find(|&&(r, d)| count(&|k| k.0 == r) == 1 && count(&|k| k.0 == r + d) >= MIN_LINES)
+            .and_then(|&(r, _)| cells.keys().find(|k| k.0 == r).copied())
+            .or_else(|| {
+                [(cmin, 1), (cmax, -1)]
+                    .iter()
+                    .find(|&&(c, d)| {
+                        count(&|k| k.1 == c) == 1 && count(&|k| k.1 == c + d) >= MIN_LINES
+                    })
+                    .and_then(|&(c, _)| cells.keys().find(|k| k.1 == c).copied())
+            });
+        match lone {
+            Some(k) => {
+                cells.remove(&k);
+            }
+            None => return,
+        }
+    }
+}
+
 /// Link corners into grids, largest first.
 pub fn assemble(corners: &[XCorner]) -> Vec<Grid> {
     let mut order: Vec<usize> = (0..corners.len()).collect();
@@ -267,7 +300,10 @@ pub fn assemble(corners: &[XCorner]) -> Vec<Grid> {
         if b.used[seed] {
             continue;
         }
-        let Some(cells) = b.grow(seed) else { continue };
+        let Some(mut cells) = b.grow(seed) else {
+            continue;
+        };
+        prune_lone_lines(&mut cells);
         let (rmin, rmax, cmin, cmax) = cells.keys().fold(
             (i32::MAX, i32::MIN, i32::MAX, i32::MIN),
             |(a, b, c, d), &(r, cc)| (a.min(r), b.max(r), c.min(cc), d.max(cc)),
