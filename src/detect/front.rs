@@ -305,9 +305,8 @@ impl CornerFinder {
             return None;
         }
         let mut ring = [0.0_f64; RING_SAMPLES];
-        for (k, v) in ring.iter_mut().enumerate() {
-            let theta = std::f64::consts::TAU * k as f64 / RING_SAMPLES as f64;
-            *v = bilinear(img, c + Vector2::new(theta.cos(), theta.sin()) * radius);
+        for (v, u) in ring.iter_mut().zip(unit_ring()) {
+            *v = bilinear(img, c + u * radius);
         }
         let (lo, hi) = ring
             .iter()
@@ -365,14 +364,27 @@ impl CornerFinder {
     }
 }
 
+/// The [`RING_SAMPLES`] unit vectors of the ring, computed once.
+fn unit_ring() -> &'static [Vector2<f64>; RING_SAMPLES] {
+    static RING: std::sync::OnceLock<[Vector2<f64>; RING_SAMPLES]> = std::sync::OnceLock::new();
+    RING.get_or_init(|| {
+        std::array::from_fn(|k| {
+            let theta = std::f64::consts::TAU * k as f64 / RING_SAMPLES as f64;
+            Vector2::new(theta.cos(), theta.sin())
+        })
+    })
+}
+
 /// The frame at a sub-pixel point, bilinear (the point must be ≥ 1 px inside).
 fn bilinear(img: &GrayImage, p: Vector2<f64>) -> f64 {
     let (fx, fy) = (p.x.floor(), p.y.floor());
     let (tx, ty) = (p.x - fx, p.y - fy);
-    let (x, y) = (fx as u32, fy as u32);
-    let at = |x: u32, y: u32| f64::from(img.get_pixel(x, y).0[0]);
-    let top = at(x, y) * (1.0 - tx) + at(x + 1, y) * tx;
-    let bottom = at(x, y + 1) * (1.0 - tx) + at(x + 1, y + 1) * tx;
+    let w = img.width() as usize;
+    let i = fy as usize * w + fx as usize;
+    let raw = img.as_raw();
+    let at = |k: usize| f64::from(raw[k]);
+    let top = at(i) * (1.0 - tx) + at(i + 1) * tx;
+    let bottom = at(i + w) * (1.0 - tx) + at(i + w + 1) * tx;
     top * (1.0 - ty) + bottom * ty
 }
 
