@@ -35,6 +35,8 @@ pub const MAX_CORNERS: usize = 2000;
 pub const AXIS_TOLERANCE: f64 = 0.2;
 /// A predicted position captures a corner within this fraction of the local step.
 pub const CAPTURE_RADIUS: f64 = 0.3;
+/// A predicted position captures a corner at most this fraction of the step across the line from it.
+pub const MAX_ACROSS: f64 = 0.5;
 /// Largest ratio between a seed's two steps: a face seen at 78° from frontal foreshortens one
 /// direction by cos 78° ≈ 1/5.
 pub const MAX_STEP_RATIO: f64 = 5.0;
@@ -249,12 +251,26 @@ impl Builder<'_> {
                         continue;
                     }
                     let pred = p + step;
+                    // The step across the line here: a candidate must be within half of it of the
+                    // prediction across, so that on a foreshortened face (steps across a quarter of
+                    // the steps along) a diagonal neighbour of the predicted corner, which has its
+                    // polarity, is not taken for it.
+                    let across = [(dc, dr), (-dc, -dr)]
+                        .iter()
+                        .find_map(|&(or, oc)| cells.get(&(r + or, c + oc)))
+                        .map(|&i| self.corners[i].uv - p)
+                        .and_then(|a| nalgebra::Matrix2::from_columns(&[step, a]).try_inverse());
+                    let off_line = |i: usize| {
+                        across.is_some_and(|inv| {
+                            (inv * (self.corners[i].uv - pred)).y.abs() > MAX_ACROSS
+                        })
+                    };
                     if let Some(j) = self.nearest(
                         &pred,
                         CAPTURE_RADIUS * len,
                         direction(&step),
                         (&self.corners[idx], true),
-                        &|i| member[i],
+                        &|i| member[i] || off_line(i),
                     ) {
                         cells.insert(target, j);
                         member[j] = true;
