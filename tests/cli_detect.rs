@@ -178,8 +178,6 @@ fn json_has_the_documented_shape_and_corners_match_ground_truth() {
 }
 
 #[test]
-#[ignore = "detector limitation: on the unblurred fixture frame grid assembly links side-x with the \
-            neighbouring face into one 7×13 lattice (55 corners) and side-x is not labelled"]
 fn json_on_the_fixture_frame_finds_all_three_faces() {
     let v = json(&cubecal(&["detect", "--rig", RIG, FRAME, "--json"]));
     let names = check_image(&v[0], FRAME, [1280, 960], &ground_truth(Path::new(TRUTH)));

@@ -47,10 +47,10 @@ fn realistic_views_every_face_below_75_degrees_found_accurately() {
     );
     assert_eq!(below.mislabelled, 0);
     assert!(below.faces >= 10, "{below}");
-    // One miss is tolerated: frame 4's side-x at 74.1° (the X-corner front end finds 51 of its 56
-    // corners, but grid assembly splits them into 4×7 and 7×4 fragments). Over the 24-frame set the
-    // detector finds 52 of 53 faces under 75°.
-    assert!(below.found + 1 >= below.faces, "{below}");
+    // Every face: frame 4's side-x at 74.1° was missed until grid assembly required alternating
+    // polarity (it was split into fragments of every other column). Over the 24-frame set the
+    // detector finds 53 of 53 faces under 75°.
+    assert_eq!(below.found, below.faces, "{below}");
     assert!(below.rms_px <= 0.03, "{below}");
     assert!(below.max_px <= 0.15, "{below}");
     // The per-corner σ bounds the error: radial RMS error ≈ √2 σ when noise dominates (hard set); at
@@ -65,8 +65,9 @@ fn hard_views_are_never_mislabelled_and_sigma_is_honest() {
     let below = Summary::of(&scores, 0.0, 75.0);
     eprintln!("hard, faces < 75°: {below}");
     assert_eq!(Summary::of(&scores, 0.0, 90.1).mislabelled, 0);
-    // Guards at today's level (issue 4's bar, 90 % at RMS ≤ 0.08 px, is not met yet).
-    assert!(below.found * 2 >= below.faces, "{below}");
+    // Issue 4's bar on the share of faces found, 90 %, is met (10 of these 11; 37 of 38 over the
+    // 24-frame set); its RMS bar (≤ 0.08 px) is not met yet: guard at today's level.
+    assert!(below.found * 10 >= below.faces * 9, "{below}");
     assert!(below.rms_px <= 0.16, "{below}");
     let ratio = below.rms_px / (2f64.sqrt() * below.rms_sigma_px);
     assert!((0.7..1.5).contains(&ratio), "error / σ ratio {ratio}");

@@ -47,12 +47,19 @@ impl DetectError {
     }
 }
 
-/// An X-corner: sub-pixel position, the directions of its two edge lines (radians, modulo π), and the
-/// front end's response.
+/// An X-corner: sub-pixel position, the directions of its two edge lines (radians, modulo π), the
+/// direction of the bisector of its two dark quadrants (radians, modulo π) and the front end's
+/// response.
+///
+/// `dark` is the corner's polarity: the bisectors of the two pairs of opposite quadrants are always
+/// 90° apart, and neighbours along a row or column of a checkerboard swap dark and bright quadrants,
+/// so their `dark` directions are ~90° apart, while corners two steps apart or diagonal neighbours
+/// have the same polarity.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct XCorner {
     pub uv: Vector2<f64>,
     pub axes: [f64; 2],
+    pub dark: f64,
     pub response: f64,
 }
 
