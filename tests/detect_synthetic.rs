@@ -54,7 +54,7 @@ fn realistic_views_every_face_below_75_degrees_found_accurately() {
     assert!(below.rms_px <= 0.03, "{below}");
     assert!(below.max_px <= 0.15, "{below}");
     // The per-corner σ bounds the error: radial RMS error ≈ √2 σ when noise dominates (hard set); at
-    // low noise the fit residual includes model mismatch and σ is conservative (measured ratio 0.49).
+    // low noise σ stays conservative (ratio 0.65 on these frames, 0.66 over the 24-frame set).
     let ratio = below.rms_px / (2f64.sqrt() * below.rms_sigma_px);
     assert!((0.4..1.5).contains(&ratio), "error / σ ratio {ratio}");
 }
@@ -65,10 +65,11 @@ fn hard_views_are_never_mislabelled_and_sigma_is_honest() {
     let below = Summary::of(&scores, 0.0, 75.0);
     eprintln!("hard, faces < 75°: {below}");
     assert_eq!(Summary::of(&scores, 0.0, 90.1).mislabelled, 0);
-    // Issue 4's bar on the share of faces found, 90 %, is met (10 of these 11; 37 of 38 over the
-    // 24-frame set); its RMS bar (≤ 0.08 px) is not met yet: guard at today's level.
+    // Issue 4's bar on the share of faces found, 90 %, is met (11 of these 11; 38 of 38 over the
+    // 24-frame set); its RMS bar (≤ 0.08 px) is not met yet (0.099 here, 0.098 over the 24-frame
+    // set): guard just above today's level.
     assert!(below.found * 10 >= below.faces * 9, "{below}");
-    assert!(below.rms_px <= 0.16, "{below}");
+    assert!(below.rms_px <= 0.11, "{below}");
     let ratio = below.rms_px / (2f64.sqrt() * below.rms_sigma_px);
     assert!((0.7..1.5).contains(&ratio), "error / σ ratio {ratio}");
 }
