@@ -24,8 +24,9 @@
 //! curvature correction below, the corner RMS went from 0.134 px at 0.42 / 9 px to 0.097 px). With
 //! `w > ½` the windows of neighbouring corners share the middle of their common edge, so their errors
 //! are mildly correlated. The fit's covariance `σ̂²(JᵀJ)⁻¹` is the per-corner quality figure
-//! ([`Refined::sigma_px`]): the standard deviation of the corner position implied by the residuals,
-//! valid for independent pixel noise (sensor noise; JPEG or demosaicing correlate neighbouring pixels
+//! ([`Refined::sigma_px`]): the standard deviation of the corner position implied by the residuals
+//! (`σ̂²` from the first stage's wide bands, see below, where the model's mismatch at the edges
+//! weighs less), valid for independent pixel noise (sensor noise; JPEG or demosaicing correlate neighbouring pixels
 //! and make it optimistic).
 //!
 //! The model's edges are straight, but lens distortion bends them, and a straight-line fit to a bent
