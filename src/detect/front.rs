@@ -419,6 +419,14 @@ mod tests {
         image::imageops::blur(&img, 1.0)
     }
 
+    /// Inner corner `(i, j)` of the board drawn by [`board`].
+    fn lattice_point(origin: Vector2<f64>, size: f64, angle: f64, i: i32, j: i32) -> Vector2<f64> {
+        let (s, c) = angle.sin_cos();
+        origin
+            + Vector2::new(c, s) * (f64::from(i) * size)
+            + Vector2::new(-s, c) * (f64::from(j) * size)
+    }
+
     #[test]
     fn finds_every_corner_of_a_rotated_board_with_its_axes() {
         let origin = Vector2::new(100.3, 90.7);
@@ -429,9 +437,7 @@ mod tests {
         let (mut found, mut inside) = (0, 0);
         for i in -4..=4 {
             for j in -4..=4 {
-                let p = origin
-                    + Vector2::new(c, s) * (f64::from(i) * size)
-                    + Vector2::new(-s, c) * (f64::from(j) * size);
+                let p = lattice_point(origin, size, angle, i, j);
                 // Half a square from the frame's edge: the four squares around it are in the frame.
                 if p.x < size / 2.0
                     || p.y < size / 2.0
@@ -476,11 +482,8 @@ mod tests {
         let (size, angle) = (17.0, 0.4_f64);
         let img = board(240, 200, size, angle, origin);
         let corners = CornerFinder::new().unwrap().find(&img).unwrap();
-        let (s, c) = angle.sin_cos();
         let at = |i: i32, j: i32| {
-            let p = origin
-                + Vector2::new(c, s) * (f64::from(i) * size)
-                + Vector2::new(-s, c) * (f64::from(j) * size);
+            let p = lattice_point(origin, size, angle, i, j);
             corners
                 .iter()
                 .find(|k| (k.uv - p).norm() < 1.0)

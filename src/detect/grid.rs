@@ -367,12 +367,19 @@ pub fn assemble(corners: &[XCorner]) -> Vec<Grid> {
 mod tests {
     use super::*;
 
-    /// Corners of a checkerboard lattice with a 12 × 8 px step (a foreshortened board), with the
-    /// polarity that alternates along rows and columns; `keep` selects which (column, row) are found.
-    fn lattice(keep: impl Fn(i32, i32) -> bool) -> Vec<XCorner> {
+    /// Corners of a `cols × rows` checkerboard lattice from `origin` with steps `step` (x, y), with the
+    /// polarity that alternates along rows and columns; `keep` selects which (column, row) are found,
+    /// `response` gives each its front-end response (which orders the seeds).
+    fn lattice_of(
+        (cols, rows): (i32, i32),
+        origin: Vector2<f64>,
+        step: Vector2<f64>,
+        keep: impl Fn(i32, i32) -> bool,
+        response: impl Fn(i32, i32) -> f64,
+    ) -> Vec<XCorner> {
         let mut out = Vec::new();
-        for j in 0..7 {
-            for i in 0..9 {
+        for j in 0..rows {
+            for i in 0..cols {
                 if !keep(i, j) {
                     continue;
                 }
@@ -382,14 +389,25 @@ mod tests {
                     0.3 + std::f64::consts::FRAC_PI_2
                 };
                 out.push(XCorner {
-                    uv: Vector2::new(100.0 + 12.0 * f64::from(i), 80.0 + 8.0 * f64::from(j)),
+                    uv: origin + Vector2::new(step.x * f64::from(i), step.y * f64::from(j)),
                     axes: [0.0, std::f64::consts::FRAC_PI_2],
                     dark,
-                    response: 100.0 + f64::from(i + 9 * j),
+                    response: response(i, j),
                 });
             }
         }
         out
+    }
+
+    /// A 9 × 7 lattice with a 12 × 8 px step (a foreshortened board).
+    fn lattice(keep: impl Fn(i32, i32) -> bool) -> Vec<XCorner> {
+        lattice_of(
+            (9, 7),
+            Vector2::new(100.0, 80.0),
+            Vector2::new(12.0, 8.0),
+            keep,
+            |i, j| 100.0 + f64::from(i + 9 * j),
+        )
     }
 
     #[test]
@@ -405,22 +423,13 @@ mod tests {
     /// 14 ms in a release build).
     #[test]
     fn a_dense_lattice_is_one_grid() {
-        let mut corners = Vec::new();
-        for j in 0..44 {
-            for i in 0..44 {
-                let dark = if (i + j) % 2 == 0 {
-                    0.3
-                } else {
-                    0.3 + std::f64::consts::FRAC_PI_2
-                };
-                corners.push(XCorner {
-                    uv: Vector2::new(10.0 + 6.0 * f64::from(i), 10.0 + 6.0 * f64::from(j)),
-                    axes: [0.0, std::f64::consts::FRAC_PI_2],
-                    dark,
-                    response: 100.0 + f64::from((i * 7 + j * 13) % 17),
-                });
-            }
-        }
+        let corners = lattice_of(
+            (44, 44),
+            Vector2::new(10.0, 10.0),
+            Vector2::new(6.0, 6.0),
+            |_, _| true,
+            |i, j| 100.0 + f64::from((i * 7 + j * 13) % 17),
+        );
         let grids = assemble(&corners);
         assert_eq!(grids.len(), 1);
         assert_eq!(

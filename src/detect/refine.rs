@@ -437,15 +437,12 @@ impl Model {
 }
 
 /// The model at one group of pixels: residuals, Jacobian rows (both zero for padding) and the
-/// quantities the curvature and quadrant tests need.
+/// quantities the curvature terms need.
 struct Eval {
     /// ∂I/∂(cx, cy, φ₁, φ₂, s, m, h), one lane per pixel.
     j: [Lane; 7],
     /// Model minus image.
     r: Lane,
-    /// Signed distances to the two lines.
-    d1: Lane,
-    d2: Lane,
     /// Positions along the two lines.
     t1: Lane,
     t2: Lane,
@@ -459,8 +456,6 @@ fn eval(grp: &Group<'_>, md: &Model) -> Eval {
     let mut e = Eval {
         j: [[0.0; LANES]; 7],
         r: [0.0; LANES],
-        d1: [0.0; LANES],
-        d2: [0.0; LANES],
         t1: [0.0; LANES],
         t2: [0.0; LANES],
         dg1: [0.0; LANES],
@@ -488,8 +483,6 @@ fn eval(grp: &Group<'_>, md: &Model) -> Eval {
         e.j[5][i] = w;
         e.j[6][i] = w * g1 * g2;
         e.r[i] = w * (md.m + md.h * g1 * g2 - vs[i]);
-        e.d1[i] = d1;
-        e.d2[i] = d2;
         e.t1[i] = t1;
         e.t2[i] = t2;
         e.dg1[i] = dg1;
