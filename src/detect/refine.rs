@@ -55,6 +55,8 @@
 //! Written here because no crate fits X-junction models: `chess-corners` refines with a saddle point
 //! in a fixed window, OpenCV's `cornerSubPix` is a gradient-orthogonality iteration in a fixed square.
 
+use std::cell::Cell;
+
 use image::GrayImage;
 use nalgebra::{Matrix2, SMatrix, SVector, Vector2};
 
@@ -164,7 +166,11 @@ const LANES: usize = 8;
 type Lane = [f32; LANES];
 
 /// The window's pixels, structure-of-arrays, padded to a whole number of groups of [`LANES`] with
-/// pixels of weight 0.
+/// pixels of weight 0. The arrays are kept from one fit to the next (see [`refine`]) and only grow:
+/// a run of a window's row, 9 pixels on average, is then a few stores per pixel, where filling new
+/// vectors (`extend` per run, with its reservation and remainder loops) took a sixth of the fit's
+/// instructions.
+#[derive(Default)]
 struct Window {
     /// Pixel-centre coordinates relative to `p0`.
     x: Vec<f32>,
@@ -175,6 +181,8 @@ struct Window {
     w: Vec<f32>,
     /// Number of (real) pixels.
     n: usize,
+    /// Number of pixels with the padding (a multiple of [`LANES`]).
+    len: usize,
 }
 
 /// One group of pixels.
@@ -186,51 +194,57 @@ struct Group<'a> {
 }
 
 impl Window {
-    fn with_capacity(n: usize) -> Window {
+    /// Empties the window, with room for `n` pixels.
+    fn reset(&mut self, n: usize) {
         let n = n + LANES;
-        Window {
-            x: Vec::with_capacity(n),
-            y: Vec::with_capacity(n),
-            v: Vec::with_capacity(n),
-            w: Vec::new(),
-            n: 0,
+        if self.x.len() < n {
+            for q in [&mut self.x, &mut self.y, &mut self.v, &mut self.w] {
+                q.resize(n, 0.0);
+            }
         }
+        self.n = 0;
+        self.len = 0;
     }
 
-    /// Appends a run of pixels of one row: `values` at columns `x0, x0 + step, …`, with `dx0`, `dy`
-    /// the first one's offset from `p0`.
-    fn push_run(
-        &mut self,
-        dx0: f32,
-        dy: f32,
-        values: impl ExactSizeIterator<Item = u8>,
-        step: usize,
-    ) {
-        let k = values.len();
+    /// Appends a run of pixels of one row: every `step`-th of `pixels`, with `dx0`, `dy` the first
+    /// one's offset from `p0`.
+    fn push_run(&mut self, dx0: f32, dy: f32, pixels: &[u8], step: usize) {
+        let k = pixels.len().div_ceil(step);
+        let (base, end) = (self.n, self.n + k);
+        if end + LANES > self.x.len() {
+            // More than `reset` was told (it is given an upper bound).
+            for q in [&mut self.x, &mut self.y, &mut self.v, &mut self.w] {
+                q.resize(end + LANES, 0.0);
+            }
+        }
         // (Through i32: converting a usize to f32 is a slow sequence on x86-64.)
-        let step = step as i32;
-        self.x
-            .extend((0..k as i32).map(|i| dx0 + (i * step) as f32));
-        self.y.extend(std::iter::repeat_n(dy, k));
-        self.v.extend(values.map(f32::from));
-        self.n += k;
+        let step_f = step as i32;
+        let xs = self.x[base..end].iter_mut();
+        let ys = self.y[base..end].iter_mut();
+        let vs = self.v[base..end].iter_mut();
+        for (i, ((x, y), v)) in (0i32..).zip(xs.zip(ys).zip(vs)) {
+            *x = dx0 + (i * step_f) as f32;
+            *y = dy;
+            *v = f32::from(pixels[(i * step_f) as usize]);
+        }
+        self.n = end;
     }
 
     /// Pads the pixels to whole groups and sets the weights.
-    fn finish(mut self) -> Window {
-        let len = self.n.div_ceil(LANES) * LANES;
-        self.w = vec![1.0; self.n];
+    fn finish(&mut self) {
+        let (n, len) = (self.n, self.n.div_ceil(LANES) * LANES);
+        self.w[..n].fill(1.0);
         for q in [&mut self.x, &mut self.y, &mut self.v, &mut self.w] {
-            q.resize(len, 0.0);
+            q[n..len].fill(0.0);
         }
-        self
+        self.len = len;
     }
 
     fn groups(&self) -> impl Iterator<Item = Group<'_>> {
-        let (x, _) = self.x.as_chunks::<LANES>();
-        let (y, _) = self.y.as_chunks::<LANES>();
-        let (v, _) = self.v.as_chunks::<LANES>();
-        let (w, _) = self.w.as_chunks::<LANES>();
+        let (x, _) = self.x[..self.len].as_chunks::<LANES>();
+        let (y, _) = self.y[..self.len].as_chunks::<LANES>();
+        let (v, _) = self.v[..self.len].as_chunks::<LANES>();
+        let (w, _) = self.w[..self.len].as_chunks::<LANES>();
         x.iter()
             .zip(y)
             .zip(v)
@@ -282,13 +296,14 @@ struct Bands {
 /// The pixels of the parallelogram `|s| ≤ ws, |t| ≤ wt` around `p0` (steps `a`, `b`) that lie in one
 /// of the two `bands`; with `coarse`, only the pixels of even row and column (a quarter).
 fn window(
+    win: &mut Window,
     img: &GrayImage,
     p0: Vector2<f64>,
     a: Vector2<f64>,
     b: Vector2<f64>,
     bands: Option<Bands>,
     coarse: bool,
-) -> Option<Window> {
+) -> Option<()> {
     let la = a.norm();
     let lb = b.norm();
     if !(la.is_finite() && lb.is_finite()) || la < 1e-6 || lb < 1e-6 {
@@ -316,7 +331,7 @@ fn window(
     let bound = 4.0 * ws * wt * (a.x * b.y - a.y * b.x).abs()
         + 4.0 * (ext_y + a.x.abs() * ws + b.x.abs() * wt)
         + 16.0;
-    let mut win = Window::with_capacity(bound as usize / if coarse { 4 } else { 1 });
+    win.reset(bound as usize / if coarse { 4 } else { 1 });
     // In-band positions outside and inside the image (every column of the rows visited).
     let mut clipped = 0usize;
     let mut inside = 0usize;
@@ -378,11 +393,10 @@ fn window(
             if coarse {
                 let skip = usize::from(xa % 2 == 1);
                 let first = xa + skip as i64;
-                let run = pixels.iter().skip(skip).step_by(2).copied();
+                let run = pixels.get(skip..).unwrap_or_default();
                 win.push_run((first as f64 - p0.x) as f32, dy as f32, run, 2);
             } else {
-                let run = pixels.iter().copied();
-                win.push_run((xa as f64 - p0.x) as f32, dy as f32, run, 1);
+                win.push_run((xa as f64 - p0.x) as f32, dy as f32, pixels, 1);
             }
         }
     }
@@ -519,10 +533,20 @@ fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
                 })*
             };
         }
-        products!(0: 0 0, 1: 0 1, 2: 0 2, 3: 0 3, 4: 0 4, 5: 0 5, 6: 0 6, 7: 0 7, 8: 1 1, 9: 1 2,
-            10: 1 3, 11: 1 4, 12: 1 5, 13: 1 6, 14: 1 7, 15: 2 2, 16: 2 3, 17: 2 4, 18: 2 5, 19: 2 6,
-            20: 2 7, 21: 3 3, 22: 3 4, 23: 3 5, 24: 3 6, 25: 3 7, 26: 4 4, 27: 4 5, 28: 4 6, 29: 4 7,
-            30: 5 5, 31: 5 6, 32: 5 7, 33: 6 6, 34: 6 7, 35: 7 7);
+        products!(0: 0 0, 1: 0 1, 2: 0 2, 3: 0 3, 4: 0 4, 6: 0 6, 7: 0 7, 8: 1 1, 9: 1 2,
+            10: 1 3, 11: 1 4, 13: 1 6, 14: 1 7, 15: 2 2, 16: 2 3, 17: 2 4, 19: 2 6,
+            20: 2 7, 21: 3 3, 22: 3 4, 24: 3 6, 25: 3 7, 26: 4 4, 28: 4 6, 29: 4 7,
+            33: 6 6, 34: 6 7, 35: 7 7);
+        // Row 5 (∂/∂m) is the weight, 0 or 1, and every row carries it as a factor: its products
+        // are plain sums of the other rows.
+        macro_rules! sums {
+            ($($k:literal: $a:literal),*) => {
+                $(for i in 0..LANES {
+                    acc[$k][i] += rows[$a][i];
+                })*
+            };
+        }
+        sums!(5: 0, 12: 1, 18: 2, 23: 3, 27: 4, 30: 5, 31: 6, 32: 7);
         if CURVATURE {
             for i in 0..LANES {
                 let jk = [
@@ -655,6 +679,26 @@ pub fn refine(
     a: Vector2<f64>,
     b: Vector2<f64>,
 ) -> Result<Refined, RefineFailure> {
+    thread_local! {
+        /// The two stages' windows, kept from one fit to the next (see [`Window`]).
+        static WINDOWS: Cell<[Window; 2]> = Cell::default();
+    }
+    WINDOWS.with(|cell| {
+        let mut windows = cell.take();
+        let result = refine_in(&mut windows, img, p0, a, b);
+        cell.set(windows);
+        result
+    })
+}
+
+/// [`refine`] with the windows `coarse` (first stage) and `fine` (second stage) to fill.
+fn refine_in(
+    [coarse_win, fine_win]: &mut [Window; 2],
+    img: &GrayImage,
+    p0: Vector2<f64>,
+    a: Vector2<f64>,
+    b: Vector2<f64>,
+) -> Result<Refined, RefineFailure> {
     let la = a.norm();
     let lb = b.norm();
     // Stage 1 on a quarter of the pixels of large windows: it converges from the start as well as
@@ -663,7 +707,8 @@ pub fn refine(
         * (WINDOW * la).clamp(MIN_HALF_PX, MAX_HALF_PX)
         * (WINDOW * lb).clamp(MIN_HALF_PX, MAX_HALF_PX);
     let coarse = area >= COARSE_MIN_AREA_PX;
-    let win = window(img, p0, a, b, None, coarse).ok_or(RefineFailure::Window)?;
+    window(coarse_win, img, p0, a, b, None, coarse).ok_or(RefineFailure::Window)?;
+    let win = &*coarse_win;
     let f1 = a.y.atan2(a.x);
     let f2 = b.y.atan2(b.x);
     // Starting edge width: a sharp lens's (s ≈ 1.2 × the blur σ). Capped at 3 px it took 16 % more
@@ -671,18 +716,18 @@ pub fn refine(
     let s0 = (0.15 * la.min(lb)).clamp(0.7, 1.5);
     // Initial level and half-contrast: least squares for the initial geometry.
     let mut p = P::from([0.0, 0.0, f1, f2, s0, 0.0, 1.0]);
-    p[5] = win.v.iter().map(|&v| f64::from(v)).sum::<f64>() / win.n as f64;
-    p[6] = initial_contrast(&win, &p).ok_or(RefineFailure::Degenerate)?;
+    p[5] = win.v[..win.n].iter().map(|&v| f64::from(v)).sum::<f64>() / win.n as f64;
+    p[6] = initial_contrast(win, &p).ok_or(RefineFailure::Degenerate)?;
     // A window whose quadrants do not alternate even roughly (the extrapolated positions around a
     // grid fall on its margin: L- and T-junctions) is not worth the fit.
-    if !quadrants_alternate(&win, &p, MIN_START_SEPARATION) {
+    if !quadrants_alternate(win, &p, MIN_START_SEPARATION) {
         return Err(RefineFailure::NotX);
     }
     let to_board = Matrix2::from_columns(&[a, b])
         .try_inverse()
         .ok_or(RefineFailure::Degenerate)?;
     let mut lambda = 1e-3;
-    let start = solve::<false>(&win, p, &mut lambda, &COARSE, &to_board)?;
+    let start = solve::<false>(win, p, &mut lambda, &COARSE, &to_board)?;
     // The pixel noise, as the first stage's residuals show it: its wide bands are mostly the squares'
     // flat insides, where the residual is the noise; the second stage's narrow bands are mostly the
     // edges, where the model's mismatch with the real blurred edge (which does not move the corner:
@@ -695,8 +740,9 @@ pub fn refine(
         half_width: (FINE_BAND_WIDTHS * start.p[4].abs() + FINE_BAND_MARGIN_PX)
             .clamp(MIN_FINE_BAND_PX, BAND_PX),
     };
-    let win = window(img, p0, a, b, Some(bands), false).ok_or(RefineFailure::Window)?;
-    let Fit { p, normal } = solve::<true>(&win, start.p, &mut lambda, &FINE, &to_board)?;
+    window(fine_win, img, p0, a, b, Some(bands), false).ok_or(RefineFailure::Window)?;
+    let win = &*fine_win;
+    let Fit { p, normal } = solve::<true>(win, start.p, &mut lambda, &FINE, &to_board)?;
     let (jtj, ssr) = (normal.jtj, normal.ssr);
     let c = Vector2::new(p[0], p[1]);
     if !c.iter().all(|v| v.is_finite()) {
@@ -720,7 +766,7 @@ pub fn refine(
     if dphi.min(std::f64::consts::PI - dphi) < MIN_LINE_ANGLE {
         return Err(RefineFailure::Parallel);
     }
-    if !quadrants_alternate(&win, &p, MIN_QUADRANT_SEPARATION) {
+    if !quadrants_alternate(win, &p, MIN_QUADRANT_SEPARATION) {
         return Err(RefineFailure::NotX);
     }
     // The corner's σ from the second stage's normal equations and the first stage's noise level: on
