@@ -65,10 +65,10 @@ pub const MAX_CANDIDATES: usize = 4000;
 #[derive(Debug, Default)]
 pub struct CornerFinder {
     threshold: f32,
-    /// One row of the 2×2-averaged frame.
-    half: Vec<f32>,
+    /// One row of the 2×2-summed frame.
+    half: Vec<u16>,
     /// Three rows of it smoothed horizontally (a ring, see `filter`).
-    rows: Vec<f32>,
+    rows: Vec<u16>,
     /// The smoothed half-resolution frame.
     smooth: Vec<f32>,
     /// Its saddle response.
@@ -122,40 +122,27 @@ impl CornerFinder {
         for buf in [&mut self.smooth, &mut self.resp] {
             buf.resize(w * h, 0.0);
         }
-        self.half.resize(w, 0.0);
-        self.rows.resize(3 * w, 0.0);
+        self.half.resize(w, 0);
+        self.rows.resize(3 * w, 0);
         for k in 0..h {
-            // 2×2 mean of full-resolution rows 2k, 2k + 1.
+            // 2×2 sum of full-resolution rows 2k, 2k + 1 (4 × the mean). Integer sums of byte pairs
+            // read as u16, which the compiler vectorises; the smoothing below is exact in integers
+            // too (at most 16 × 4 × 255), so `smooth` holds the same values as a float pipeline.
             let a = &src[2 * k * stride..2 * k * stride + 2 * w];
             let b = &src[(2 * k + 1) * stride..(2 * k + 1) * stride + 2 * w];
             let half = &mut self.half[..w];
-            // In blocks of 8 outputs, which the compiler turns into SIMD shuffles and adds (the
-            // plain pairwise loop it did not vectorise: 12 instructions a pixel).
-            let mean = |out: &mut f32, pa: &[u8], pb: &[u8]| {
-                let sum = u16::from(pa[0]) + u16::from(pa[1]) + u16::from(pb[0]) + u16::from(pb[1]);
-                *out = f32::from(sum) * 0.25;
-            };
-            let (blocks, rest) = half.as_chunks_mut::<8>();
-            let (ab, ar) = a.as_chunks::<16>();
-            let (bb, br) = b.as_chunks::<16>();
-            for ((out, pa), pb) in blocks.iter_mut().zip(ab).zip(bb) {
-                for i in 0..8 {
-                    mean(&mut out[i], &pa[2 * i..], &pb[2 * i..]);
-                }
+            let (pa, _) = a.as_chunks::<2>();
+            let (pb, _) = b.as_chunks::<2>();
+            for ((out, &pa), &pb) in half.iter_mut().zip(pa).zip(pb) {
+                let (va, vb) = (u16::from_le_bytes(pa), u16::from_le_bytes(pb));
+                *out = (va & 0xff) + (va >> 8) + (vb & 0xff) + (vb >> 8);
             }
-            for ((out, pa), pb) in rest
-                .iter_mut()
-                .zip(ar.chunks_exact(2))
-                .zip(br.chunks_exact(2))
-            {
-                mean(out, pa, pb);
-            }
-            // Horizontal [1 2 1]/4, edges clamped, into ring slot k mod 3.
+            // Horizontal [1 2 1] (edges clamped), into ring slot k mod 3: 16 × the smoothed mean.
             let dst = &mut self.rows[(k % 3) * w..][..w];
-            dst[0] = 0.75 * half[0] + 0.25 * half[1];
-            dst[w - 1] = 0.75 * half[w - 1] + 0.25 * half[w - 2];
+            dst[0] = 3 * half[0] + half[1];
+            dst[w - 1] = 3 * half[w - 1] + half[w - 2];
             for (d, s) in dst[1..w - 1].iter_mut().zip(half.windows(3)) {
-                *d = 0.25 * s[0] + 0.5 * s[1] + 0.25 * s[2];
+                *d = s[0] + 2 * s[1] + s[2];
             }
             // Vertical [1 2 1]/4 of row k − 1 (rows k − 2 and k around it, clamped at the top).
             if k >= 1 {
@@ -173,14 +160,15 @@ impl CornerFinder {
         self.resp[(h - 1) * w..].fill(0.0);
     }
 
-    /// Row `y` of `smooth` from the ring's rows `up`, `y` and `down` (half-resolution row indices).
+    /// Row `y` of `smooth` from the ring's rows `up`, `y` and `down` (half-resolution row indices):
+    /// their vertical [1 2 1], scaled from 64 × the mean to grey levels.
     fn vertical(&mut self, y: usize, up: usize, down: usize, w: usize) {
         let up = &self.rows[(up % 3) * w..][..w];
         let mid = &self.rows[(y % 3) * w..][..w];
         let down = &self.rows[(down % 3) * w..][..w];
         let dst = &mut self.smooth[y * w..][..w];
-        for (((d, a), b), c) in dst.iter_mut().zip(up).zip(mid).zip(down) {
-            *d = 0.25 * a + 0.5 * b + 0.25 * c;
+        for (((d, &a), &b), &c) in dst.iter_mut().zip(up).zip(mid).zip(down) {
+            *d = f32::from(a + 2 * b + c) * (1.0 / 64.0);
         }
     }
 
@@ -210,17 +198,23 @@ impl CornerFinder {
             return out;
         }
         let resp = &self.resp;
+        let thr = self.threshold;
+        // Blocks of 16 with nothing above the floor (most of a frame) are passed over with one
+        // branch: the count is a SIMD compare and add.
+        const BLOCK: usize = 16;
         for y in BORDER..h - BORDER {
-            let row = &resp[y * w..][..w];
-            for x in BORDER..w - BORDER {
-                let v = row[x];
-                if v <= self.threshold {
-                    continue;
+            let row = &resp[y * w..][..w - BORDER];
+            let mut x0 = BORDER;
+            while x0 < row.len() {
+                let block = &row[x0..(x0 + BLOCK).min(row.len())];
+                if block.iter().map(|&v| u32::from(v > thr)).sum::<u32>() > 0 {
+                    for (x, &v) in (x0..).zip(block) {
+                        if v > thr && self.is_peak(x, y, w, v) {
+                            out.extend(self.corner_at(img, x, y, w));
+                        }
+                    }
                 }
-                if !self.is_peak(x, y, w, v) {
-                    continue;
-                }
-                out.extend(self.corner_at(img, x, y, w));
+                x0 += BLOCK;
             }
         }
         out
