@@ -515,10 +515,11 @@ fn lane_sum(acc: &Lane) -> f64 {
 /// derivatives in the two lines' curvatures `κ` (`∂dᵢ/∂κᵢ = −tᵢ²/2`, see
 /// [`Refined::curvature_shift`]), zero otherwise.
 fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
+    const HALF: usize = LANES / 2;
     let md = Model::new(p);
     // Upper triangle of [J r]ᵀ[J r], row by row, one lane per pixel of a group.
-    let mut acc = [[0.0_f32; LANES]; 36];
-    let mut cross = [[[0.0_f32; LANES]; 7]; 2];
+    let mut acc = [[0.0_f32; HALF]; 36];
+    let mut cross = [[[0.0_f32; HALF]; 7]; 2];
     for grp in win.groups() {
         let e = eval(&grp, &md);
         let rows = [e.j[0], e.j[1], e.j[2], e.j[3], e.j[4], e.j[5], e.j[6], e.r];
@@ -528,8 +529,8 @@ fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
         // compiler shuffled lanes instead and it took 30 % more instructions.)
         macro_rules! products {
             ($($k:literal: $a:literal $b:literal),*) => {
-                $(for i in 0..LANES {
-                    acc[$k][i] += rows[$a][i] * rows[$b][i];
+                $(for i in 0..HALF {
+                    acc[$k][i] += rows[$a][i] * rows[$b][i] + rows[$a][i + HALF] * rows[$b][i + HALF];
                 })*
             };
         }
@@ -541,21 +542,24 @@ fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
         // are plain sums of the other rows.
         macro_rules! sums {
             ($($k:literal: $a:literal),*) => {
-                $(for i in 0..LANES {
-                    acc[$k][i] += rows[$a][i];
+                $(for i in 0..HALF {
+                    acc[$k][i] += rows[$a][i] + rows[$a][i + HALF];
                 })*
             };
         }
         sums!(5: 0, 12: 1, 18: 2, 23: 3, 27: 4, 30: 5, 31: 6, 32: 7);
         if CURVATURE {
-            for i in 0..LANES {
-                let jk = [
+            let jk = |i: usize| {
+                [
                     -0.5 * e.dg1[i] * e.t1[i] * e.t1[i],
                     -0.5 * e.dg2[i] * e.t2[i] * e.t2[i],
-                ];
-                for (k, jk) in jk.iter().enumerate() {
+                ]
+            };
+            for i in 0..HALF {
+                let (lo, hi) = (jk(i), jk(i + HALF));
+                for k in 0..2 {
                     for a in 0..7 {
-                        cross[k][a][i] += e.j[a][i] * jk;
+                        cross[k][a][i] += e.j[a][i] * lo[k] + e.j[a][i + HALF] * hi[k];
                     }
                 }
             }
@@ -570,7 +574,7 @@ fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
     let mut k = 0;
     for a in 0..8 {
         for b in a..8 {
-            let v = lane_sum(&acc[k]);
+            let v: f64 = acc[k].iter().map(|&v| f64::from(v)).sum();
             match (a, b) {
                 (7, 7) => out.ssr = v,
                 (_, 7) => out.jtr[a] = v,
@@ -585,7 +589,7 @@ fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
     if CURVATURE {
         for k in 0..2 {
             for a in 0..7 {
-                out.cross[(a, k)] = lane_sum(&cross[k][a]);
+                out.cross[(a, k)] = cross[k][a].iter().map(|&v| f64::from(v)).sum();
             }
         }
     }
