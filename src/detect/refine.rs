@@ -518,7 +518,7 @@ fn eval(grp: &Group<'_>, md: &Model) -> Eval {
 }
 
 /// Sum of the lanes of `acc`, in f64.
-fn lane_sum(acc: &Lane) -> f64 {
+fn lane_sum(acc: &[f32]) -> f64 {
     acc.iter().map(|&v| f64::from(v)).sum()
 }
 
@@ -586,7 +586,7 @@ fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
     let mut k = 0;
     for a in 0..8 {
         for b in a..8 {
-            let v: f64 = acc[k].iter().map(|&v| f64::from(v)).sum();
+            let v = lane_sum(&acc[k]);
             match (a, b) {
                 (7, 7) => out.ssr = v,
                 (_, 7) => out.jtr[a] = v,
@@ -601,7 +601,7 @@ fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
     if CURVATURE {
         for k in 0..2 {
             for a in 0..7 {
-                out.cross[(a, k)] = cross[k][a].iter().map(|&v| f64::from(v)).sum();
+                out.cross[(a, k)] = lane_sum(&cross[k][a]);
             }
         }
     }
@@ -654,7 +654,7 @@ fn quadrants_alternate(win: &Window, p: &P, min_separation: f64) -> bool {
             }
         }
     }
-    let count: Vec<f64> = n.iter().map(lane_sum).collect();
+    let count: Vec<f64> = n.iter().map(|k| lane_sum(k)).collect();
     if count.iter().any(|&k| k < MIN_QUADRANT_PIXELS as f64) {
         return false;
     }
@@ -707,7 +707,7 @@ pub fn refine(
     })
 }
 
-/// [`refine`] with the windows `coarse` (first stage) and `fine` (second stage) to fill.
+/// [`refine`] with the windows of the first stage (`coarse_win`) and the second (`fine_win`) to fill.
 fn refine_in(
     [coarse_win, fine_win]: &mut [Window; 2],
     img: &GrayImage,
