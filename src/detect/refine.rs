@@ -46,7 +46,17 @@
 //! a quadratic profile term for gamma) reached 0.087 px (realistic 0.0118) but tripled the fit's
 //! instructions and doubled the correlation of adjacent corners' errors (0.11 → 0.25); the corners
 //! on a board's border, 45 % of them, cannot be extended that way. It is kept on the branch
-//! `hard-rms`, not here.
+//! `hard-rms`, not here. A second try (branch `edges`) kept this fit and measured each of the
+//! corner's two lines again *outside* its window, along the edges to and past its neighbours (the
+//! edge modulated by `tanh` factors of the crossing lattice lines, a level and contrast per side, the
+//! lattice curvature, one Gauss–Newton step), combined with the fit by inverse covariance: hard
+//! 0.098 → 0.089 px (σ 0.074 → 0.062, honest), realistic unchanged, but twice the detection time
+//! before any optimisation; following the lines further (two, three neighbours) lowered σ to
+//! 0.054 px without lowering the error (the lattice curvature, itself from the noisy corners, and the
+//! neighbours' positions then dominate), and adding the strips' slopes to the fit's angles made the
+//! realistic set worse (0.0138 → 0.0169 px). What limits the hard set is the foreshortened line of
+//! faces at 60–75°: its squares are 10–17 px long, so every stretch of it lies within a few edge
+//! widths of a crossing.
 //!
 //! **Cost.** The fit runs in two stages. The first starts from the grid's estimate (the front end's
 //! position, the lattice's directions) on a quarter of the window's pixels (even rows and columns)
