@@ -96,6 +96,14 @@ pub const RECOVER_RESIDUAL: f64 = 1.5;
 /// A recovered corner's contrast must be at least this fraction of the grid's median.
 pub const RECOVER_CONTRAST: f64 = 0.4;
 
+/// Whether the fit `f` looks like a corner of a grid whose corners have these median contrast and
+/// residual: residual at most [`RECOVER_RESIDUAL`] × the median (+1 grey level), contrast at least
+/// [`RECOVER_CONTRAST`] × the median.
+pub(super) fn like_grid(f: &Refined, median_contrast: f64, median_residual: f64) -> bool {
+    f.residual <= RECOVER_RESIDUAL * median_residual + 1.0
+        && f.contrast >= RECOVER_CONTRAST * median_contrast
+}
+
 /// Cells within this many lines of a target feed its local homography.
 pub const LOCAL_RADIUS: i32 = 3;
 
@@ -295,10 +303,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
     else {
         return Completed::empty(dropped, 0);
     };
-    let like_grid = |f: &Refined| {
-        f.residual <= RECOVER_RESIDUAL * median_residual + 1.0
-            && f.contrast >= RECOVER_CONTRAST * median_contrast
-    };
+    let like_grid = |f: &Refined| like_grid(f, median_contrast, median_residual);
     // Recover missing corners, ring by ring, until nothing changes.
     let mut tried: BTreeMap<(i32, i32), usize> = BTreeMap::new();
     let mut recovered = 0;
@@ -397,7 +402,8 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
     }
 }
 
-fn median(v: &mut [f64]) -> Option<f64> {
+/// The median of `v` (the upper one for an even count), `None` if empty.
+pub(super) fn median(v: &mut [f64]) -> Option<f64> {
     if v.is_empty() {
         return None;
     }

@@ -183,10 +183,7 @@ impl CornerFinder {
         resp[0] = 0.0;
         resp[w - 1] = 0.0;
         for (x, r) in resp[1..w - 1].iter_mut().enumerate() {
-            // Centre pixel is x + 1.
-            let xx = mid[x] - 2.0 * mid[x + 1] + mid[x + 2];
-            let yy = up[x + 1] - 2.0 * mid[x + 1] + down[x + 1];
-            let xy = 0.25 * (down[x + 2] - down[x] - up[x + 2] + up[x]);
+            let (xx, yy, xy) = second_differences(up, mid, down, x + 1);
             *r = xy * xy - xx * yy;
         }
     }
@@ -287,9 +284,8 @@ impl CornerFinder {
             for xx in x - 1..=x + 1 {
                 let i = yy * w + xx;
                 // The second differences `response` took (the 3×3 block is inside its border).
-                let ixx = s[i - 1] - 2.0 * s[i] + s[i + 1];
-                let iyy = s[i - w] - 2.0 * s[i] + s[i + w];
-                let ixy = 0.25 * (s[i + w + 1] - s[i + w - 1] - s[i - w + 1] + s[i - w - 1]);
+                let (ixx, iyy, ixy) =
+                    second_differences(&s[i - w - xx..], &s[i - xx..], &s[i + w - xx..], xx);
                 hxx += f64::from(ixx);
                 hyy += f64::from(iyy);
                 hxy += f64::from(ixy);
@@ -384,6 +380,16 @@ impl CornerFinder {
         };
         Some((axes, dark.rem_euclid(pi)))
     }
+}
+
+/// The second differences `(I_xx, I_yy, I_xy)` of the smoothed frame at column `x` of row `mid`,
+/// with `up` and `down` the rows above and below (`0 < x < w − 1`).
+#[inline(always)]
+fn second_differences(up: &[f32], mid: &[f32], down: &[f32], x: usize) -> (f32, f32, f32) {
+    let xx = mid[x - 1] - 2.0 * mid[x] + mid[x + 1];
+    let yy = up[x] - 2.0 * mid[x] + down[x];
+    let xy = 0.25 * (down[x + 1] - down[x - 1] - up[x + 1] + up[x - 1]);
+    (xx, yy, xy)
 }
 
 /// The [`RING_SAMPLES`] unit vectors of the ring, computed once.

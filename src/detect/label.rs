@@ -56,7 +56,7 @@
 use image::GrayImage;
 use nalgebra::{Vector2, Vector3};
 
-use super::complete::{Completed, RECOVER_CONTRAST, RECOVER_RESIDUAL};
+use super::complete::{Completed, like_grid, median};
 use super::grid::MIN_LINES;
 use super::refine::{self, RefineFailure};
 use crate::calib::linear::{COPLANAR_TOLERANCE, dlt, relative_thickness};
@@ -494,14 +494,6 @@ fn step_at(ps: &[Vector2<f64>], i: usize) -> Vector2<f64> {
     }
 }
 
-fn median(v: &mut [f64]) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    Some(v[v.len() / 2])
-}
-
 /// Mean intensity of the 3×3 pixels around `p`, if they are all inside the image.
 fn mean_3x3(img: &GrayImage, p: Vector2<f64>) -> Option<f64> {
     let (x, y) = (p.x.round(), p.y.round());
@@ -601,9 +593,7 @@ fn look_beyond(img: &GrayImage, d: &Dense, side: Side) -> SideBeyond {
         match refine::refine(img, p, along, outward) {
             Ok(f) => {
                 let medians = reference();
-                let like_grid = medians.is_none_or(|(c, r)| {
-                    f.residual <= RECOVER_RESIDUAL * r + 1.0 && f.contrast >= RECOVER_CONTRAST * c
-                });
+                let like_grid = medians.is_none_or(|(c, r)| like_grid(&f, c, r));
                 tracing::debug!(?side, i, uv = ?f.uv, contrast = f.contrast, residual = f.residual, ?medians, like_grid, "corner fit beyond the grid");
                 if like_grid {
                     out.corners.push(f.uv);
