@@ -51,13 +51,16 @@
 //!    normalised DLT on all labelled corners must fit clearly better than with any single face's
 //!    orientation reversed ([`GEOMETRY_MARGIN`]), or the frame's labelling is dropped.
 //!
-//! Partially visible faces (incomplete grids) are not labelled yet: they are reported as rejected.
+//! Grids that fail the size or extent steps (partially visible faces, incomplete grids) are not
+//! labelled by their own evidence: [`super::place`] tries to place them through the rig geometry of
+//! the complete faces found here, and reports the ones it cannot place as rejected.
 
 use image::GrayImage;
 use nalgebra::{Vector2, Vector3};
 
 use super::complete::{Completed, like_grid, median};
 use super::grid::MIN_LINES;
+use super::place::{Partial, place};
 use super::refine::{self, RefineFailure};
 use crate::calib::linear::{COPLANAR_TOLERANCE, dlt, relative_thickness};
 use crate::target::{Rig, SquareColour};
@@ -112,7 +115,7 @@ struct Mapping {
     turns: u8,
 }
 
-fn mean_square_intensity(img: &GrayImage, quad: [Vector2<f64>; 4]) -> Option<f64> {
+pub(super) fn mean_square_intensity(img: &GrayImage, quad: [Vector2<f64>; 4]) -> Option<f64> {
     let c = (quad[0] + quad[1] + quad[2] + quad[3]) / 4.0;
     // Average a small neighbourhood a third of the way to each corner.
     let mut sum = 0.0;
@@ -212,6 +215,7 @@ pub fn label(
 ) -> (Vec<FaceDetection>, Vec<Rejection>) {
     let mut rejected = Vec::new();
     let mut found: Vec<(FaceDetection, Dense, Mapping)> = Vec::new();
+    let mut partials = Vec::new();
     for g in grids {
         if g.count() == 0 {
             rejected.push(Rejection {
@@ -221,14 +225,13 @@ pub fn label(
             continue;
         }
         if g.count() != g.rows * g.cols || g.rows < MIN_LINES || g.cols < MIN_LINES {
-            rejected.push(Rejection {
-                reason: format!(
-                    "incomplete grid ({} of {}×{} corners): partially visible faces are not labelled",
-                    g.count(),
-                    g.rows,
-                    g.cols
-                ),
-            });
+            let reason = format!(
+                "incomplete grid ({} of {}×{} corners)",
+                g.count(),
+                g.rows,
+                g.cols
+            );
+            partials.push(Partial::new(g, reason));
             continue;
         }
         let mut dense = Dense {
@@ -255,16 +258,15 @@ pub fn label(
             }
         }
         if candidates.is_empty() {
-            rejected.push(Rejection {
-                reason: format!(
-                    "{}×{} grid matches no face of rig '{}'",
-                    dense.rows, dense.cols, rig.name
-                ),
-            });
+            let reason = format!(
+                "{}×{} grid matches no face of rig '{}'",
+                dense.rows, dense.cols, rig.name
+            );
+            partials.push(Partial::new(g, reason));
             continue;
         }
         if let Err(reason) = check_extent(img, &dense) {
-            rejected.push(Rejection { reason });
+            partials.push(Partial::new(g, reason));
             continue;
         }
         // Orientation by square colours, per candidate face.
@@ -392,9 +394,14 @@ pub fn label(
         && let Err(reason) = check_geometry(rig, &found)
     {
         rejected.push(Rejection { reason });
+        rejected.extend(partials.into_iter().map(|p| Rejection { reason: p.reason }));
         return (Vec::new(), rejected);
     }
-    (found.into_iter().map(|(f, _, _)| f).collect(), rejected)
+    let mut faces: Vec<FaceDetection> = found.into_iter().map(|(f, _, _)| f).collect();
+    let (placed, not_placed) = place(img, rig, &faces, partials);
+    faces.extend(placed);
+    rejected.extend(not_placed);
+    (faces, rejected)
 }
 
 /// One side of a grid: its outermost line of corners and the lines inside it.

@@ -24,6 +24,7 @@ pub mod front;
 pub mod grid;
 pub mod label;
 pub mod overlay;
+pub mod place;
 pub mod refine;
 pub mod score;
 
