@@ -17,10 +17,12 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
+use cubecal::camera::Pose;
 use cubecal::capture::synthetic::{frame_paths, ground_truth, render, write_frame};
 use cubecal::detect::score::{EvalSet, Summary, score};
 use cubecal::detect::{CornerFinder, detect};
 use cubecal::target::Rig;
+use nalgebra::Vector3;
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -48,9 +50,30 @@ fn main() -> anyhow::Result<()> {
         other => anyhow::bail!("unknown set {other:?} (realistic | hard)"),
     };
     let (camera, settings) = (eval_set.camera(), eval_set.settings());
-    let dir = cache.join(set);
+    // PAN_DEG=θ turns the camera about its vertical axis by ±θ (alternating) so that the rig is
+    // cut by the image border: partially visible faces.
+    let pan_deg: f64 = std::env::var("PAN_DEG")
+        .ok()
+        .map(|s| s.parse())
+        .transpose()?
+        .unwrap_or(0.0);
+    let dir = if pan_deg == 0.0 {
+        cache.join(set)
+    } else {
+        cache.join(format!("{set}-pan{pan_deg}"))
+    };
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let poses = eval_set.poses(&rig, n);
+    let poses: Vec<_> = eval_set
+        .poses(&rig, n)
+        .into_iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let deg = if k % 2 == 0 { pan_deg } else { -pan_deg };
+            let pan =
+                Pose::from_axis_angle(Vector3::new(0.0, deg.to_radians(), 0.0), Vector3::zeros());
+            pan.compose(&p)
+        })
+        .collect();
     let mut finder = CornerFinder::new()?;
     let mut all = Vec::new();
     let mut times = Vec::new();
@@ -72,7 +95,7 @@ fn main() -> anyhow::Result<()> {
             front_end_recall(&mut finder, &img, &truth, k)?;
         }
         for s in &scores {
-            if !s.fully_visible && !s.found {
+            if !(s.fully_visible || s.found || verbose && s.visible_corners > 0) {
                 continue;
             }
             let rms =
@@ -114,6 +137,21 @@ fn main() -> anyhow::Result<()> {
     for (a, b) in [(0.0, 45.0), (45.0, 60.0), (60.0, 75.0), (75.0, 90.1)] {
         println!("  {a:2}–{b:2}°: {}", Summary::of(&all, a, b));
     }
+    let partial: Vec<_> = all.iter().filter(|s| !s.fully_visible).collect();
+    let placed: Vec<_> = partial.iter().filter(|s| s.found).collect();
+    let errors: Vec<f64> = placed
+        .iter()
+        .flat_map(|s| s.errors.iter().copied())
+        .collect();
+    println!(
+        "  partially visible faces (≥ 1 corner visible): {}, placed {} with {} corners (of {} visible), {} mislabelled, RMS {:.4} px",
+        partial.iter().filter(|s| s.visible_corners > 0).count(),
+        placed.len(),
+        placed.iter().map(|s| s.corners).sum::<usize>(),
+        placed.iter().map(|s| s.visible_corners).sum::<usize>(),
+        placed.iter().map(|s| s.mislabelled).sum::<usize>(),
+        (errors.iter().map(|e| e * e).sum::<f64>() / errors.len().max(1) as f64).sqrt() + 0.0
+    );
     println!(
         "  detect time per frame (this build): median {:.1} ms, max {:.1} ms",
         times[times.len() / 2],
