@@ -56,7 +56,7 @@
 //! the complete faces found here, and reports the ones it cannot place as rejected.
 
 use image::GrayImage;
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix3x4, Vector2, Vector3};
 
 use super::complete::{Completed, like_grid, median};
 use super::grid::MIN_LINES;
@@ -135,6 +135,49 @@ pub(super) fn mean_square_intensity(img: &GrayImage, quad: [Vector2<f64>; 4]) ->
     }
     sum += f64::from(img.get_pixel(x as u32, y as u32).0[0]);
     Some(sum / (n + 1.0))
+}
+
+/// The face indices that occur more than once.
+pub(super) fn repeated(faces: impl Iterator<Item = usize>) -> Vec<usize> {
+    let mut faces: Vec<usize> = faces.collect();
+    faces.sort_unstable();
+    let mut dup: Vec<usize> = faces
+        .windows(2)
+        .filter(|w| w[0] == w[1])
+        .map(|w| w[0])
+        .collect();
+    dup.dedup();
+    dup
+}
+
+/// Mean intensities of the squares predicted white and black by a labelling.
+#[derive(Debug, Default, Clone, Copy)]
+pub(super) struct ColourSums {
+    white: f64,
+    n_white: usize,
+    black: f64,
+    n_black: usize,
+}
+
+impl ColourSums {
+    pub(super) fn add(&mut self, colour: SquareColour, intensity: f64) {
+        match colour {
+            SquareColour::White => {
+                self.white += intensity;
+                self.n_white += 1;
+            }
+            SquareColour::Black => {
+                self.black += intensity;
+                self.n_black += 1;
+            }
+        }
+    }
+
+    /// White-minus-black mean intensity (`None` unless both colours were seen).
+    pub(super) fn contrast(&self) -> Option<f64> {
+        (self.n_white > 0 && self.n_black > 0)
+            .then(|| self.white / self.n_white as f64 - self.black / self.n_black as f64)
+    }
 }
 
 /// A complete grid as a dense `rows × cols` array of image points (with their σ), handedness-corrected.
@@ -292,7 +335,7 @@ pub fn label(
         for m in &candidates {
             let face = &rig.faces[m.face];
             let d = dense.turned(m.turns);
-            let (mut white, mut nw, mut black, mut nb) = (0.0, 0.0, 0.0, 0.0);
+            let mut sums = ColourSums::default();
             let mut ok = true;
             for r in 0..d.rows - 1 {
                 for c in 0..d.cols - 1 {
@@ -306,22 +349,12 @@ pub fn label(
                         ok = false;
                         continue;
                     };
-                    match face.square_colour(r + 1, c + 1) {
-                        SquareColour::White => {
-                            white += v;
-                            nw += 1.0;
-                        }
-                        SquareColour::Black => {
-                            black += v;
-                            nb += 1.0;
-                        }
-                    }
+                    sums.add(face.square_colour(r + 1, c + 1), v);
                 }
             }
-            if !ok || nw == 0.0 || nb == 0.0 {
+            let Some(contrast) = sums.contrast().filter(|_| ok) else {
                 continue;
-            }
-            let contrast = white / nw - black / nb;
+            };
             if face.is_point_symmetric() && best.is_some() {
                 ambiguous = true;
             }
@@ -372,13 +405,7 @@ pub fn label(
         found.push((det, d, mapping));
     }
     // A face found twice is a contradiction: drop both.
-    let mut faces: Vec<usize> = found.iter().map(|(f, _, _)| f.face).collect();
-    faces.sort_unstable();
-    let dup: Vec<usize> = faces
-        .windows(2)
-        .filter(|w| w[0] == w[1])
-        .map(|w| w[0])
-        .collect();
+    let dup = repeated(found.iter().map(|(f, _, _)| f.face));
     if !dup.is_empty() {
         found.retain(|(f, _, _)| {
             let keep = !dup.contains(&f.face);
@@ -670,22 +697,34 @@ fn check_extent(img: &GrayImage, d: &Dense) -> Result<(), String> {
     Ok(())
 }
 
-fn dlt_rms(points: &[(Vector3<f64>, Vector2<f64>)]) -> Option<f64> {
+/// The normalised DLT projection of 2D–3D pairs (`None` when the 3D points are coplanar).
+pub(super) fn dlt_fit(points: &[(Vector3<f64>, Vector2<f64>)]) -> Option<Matrix3x4<f64>> {
     let x3: Vec<Vector3<f64>> = points.iter().map(|p| p.0).collect();
-    let x2: Vec<Vector2<f64>> = points.iter().map(|p| p.1).collect();
     if relative_thickness(&x3) < COPLANAR_TOLERANCE {
         return None;
     }
-    let p = dlt(&x3, &x2).ok()?;
+    let x2: Vec<Vector2<f64>> = points.iter().map(|p| p.1).collect();
+    dlt(&x3, &x2).ok()
+}
+
+/// RMS image distance (px) between the pairs' 2D points and their 3D points projected by `p`.
+pub(super) fn reprojection_rms(
+    p: &Matrix3x4<f64>,
+    points: &[(Vector3<f64>, Vector2<f64>)],
+) -> Option<f64> {
     let mut ssr = 0.0;
-    for (x, u) in x3.iter().zip(&x2) {
+    for (x, u) in points {
         let h = p * x.push(1.0);
         if h.z.abs() < 1e-300 {
             return None;
         }
         ssr += (Vector2::new(h.x / h.z, h.y / h.z) - u).norm_squared();
     }
-    Some((ssr / x3.len() as f64).sqrt())
+    Some((ssr / points.len().max(1) as f64).sqrt())
+}
+
+fn dlt_rms(points: &[(Vector3<f64>, Vector2<f64>)]) -> Option<f64> {
+    reprojection_rms(&dlt_fit(points)?, points)
 }
 
 /// The labelled faces must fit one camera clearly better than with any face's orientation reversed.

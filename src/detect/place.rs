@@ -36,14 +36,14 @@
 //! 64 of 70 whole faces, hard 49 → 51 of 66).
 
 use image::GrayImage;
-use nalgebra::{Matrix3x4, Vector2, Vector3};
+use nalgebra::{Vector2, Vector3};
 
 use super::complete::{Completed, median};
 use super::label::{
-    FaceDetection, LabelledCorner, MIN_COLOUR_CONTRAST, Rejection, mean_square_intensity,
+    ColourSums, FaceDetection, LabelledCorner, MIN_COLOUR_CONTRAST, Rejection, dlt_fit,
+    mean_square_intensity, repeated, reprojection_rms,
 };
-use crate::calib::linear::{COPLANAR_TOLERANCE, dlt, relative_thickness};
-use crate::target::{Rig, SquareColour};
+use crate::target::Rig;
 
 /// The best placement's geometric RMS must be this many times smaller than any other's.
 pub const PLACEMENT_MARGIN: f64 = 3.0;
@@ -184,27 +184,6 @@ impl Placement {
     }
 }
 
-fn reprojection_rms(p: &Matrix3x4<f64>, pts: &[(Vector3<f64>, Vector2<f64>)]) -> Option<f64> {
-    let mut ssr = 0.0;
-    for (x, u) in pts {
-        let h = p * x.push(1.0);
-        if h.z.abs() < 1e-300 {
-            return None;
-        }
-        ssr += (Vector2::new(h.x / h.z, h.y / h.z) - u).norm_squared();
-    }
-    Some((ssr / pts.len().max(1) as f64).sqrt())
-}
-
-fn fit(pts: &[(Vector3<f64>, Vector2<f64>)]) -> Option<Matrix3x4<f64>> {
-    let x3: Vec<Vector3<f64>> = pts.iter().map(|p| p.0).collect();
-    if relative_thickness(&x3) < COPLANAR_TOLERANCE {
-        return None;
-    }
-    let x2: Vec<Vector2<f64>> = pts.iter().map(|p| p.1).collect();
-    dlt(&x3, &x2).ok()
-}
-
 /// Place the partial grids of one frame on the faces not found complete. Returns the placed faces
 /// and the rejections of the grids that could not be placed (each with its original reason).
 pub(super) fn place(
@@ -223,13 +202,7 @@ pub(super) fn place(
             }),
         }
     }
-    let mut faces: Vec<usize> = placed.iter().map(|f| f.face).collect();
-    faces.sort_unstable();
-    let dup: Vec<usize> = faces
-        .windows(2)
-        .filter(|w| w[0] == w[1])
-        .map(|w| w[0])
-        .collect();
+    let dup = repeated(placed.iter().map(|f| f.face));
     placed.retain(|f| {
         let keep = !dup.contains(&f.face);
         if !keep {
@@ -291,7 +264,7 @@ fn place_one(
         .iter()
         .flat_map(|f| f.corners.iter().map(|c| (c.xyz, c.uv)))
         .collect();
-    let fixed = fit(&known);
+    let fixed = dlt_fit(&known);
     let taken: Vec<usize> = complete.iter().map(|f| f.face).collect();
     let mut scored: Vec<(f64, Placement, f64)> = Vec::new();
     let mut pts = known.clone();
@@ -311,7 +284,7 @@ fn place_one(
                         turns,
                         offset: (dr, dc),
                     };
-                    let (mut white, mut nw, mut black, mut nb) = (0.0, 0.0, 0.0, 0.0);
+                    let mut sums = ColourSums::default();
                     for &(r, c, v) in &squares {
                         // The square's corner nearest the face's (0, 0) after the turn.
                         let (r0, c0) = [(r, c), (r, c + 1), (r + 1, c), (r + 1, c + 1)]
@@ -320,21 +293,11 @@ fn place_one(
                             .fold((usize::MAX, usize::MAX), |m, x| {
                                 (m.0.min(x.0), m.1.min(x.1))
                             });
-                        match face.square_colour(r0 + 1, c0 + 1) {
-                            SquareColour::White => {
-                                white += v;
-                                nw += 1.0;
-                            }
-                            SquareColour::Black => {
-                                black += v;
-                                nb += 1.0;
-                            }
-                        }
+                        sums.add(face.square_colour(r0 + 1, c0 + 1), v);
                     }
-                    if nw == 0.0 || nb == 0.0 {
+                    let Some(contrast) = sums.contrast() else {
                         continue;
-                    }
-                    let contrast = white / nw - black / nb;
+                    };
                     if contrast < MIN_COLOUR_CONTRAST {
                         continue;
                     }
@@ -347,7 +310,7 @@ fn place_one(
                         None => {
                             pts.truncate(known.len());
                             pts.extend(cand);
-                            fit(&pts).and_then(|pm| reprojection_rms(&pm, &pts))
+                            dlt_fit(&pts).and_then(|pm| reprojection_rms(&pm, &pts))
                         }
                     };
                     if let Some(rms) = rms {
@@ -393,7 +356,7 @@ fn place_one(
     // Extent: the face's other corners must lie outside the frame (or hug its border).
     let mut all = known;
     all.extend(corners.iter().map(|c| (c.xyz, c.uv)));
-    let pm = fit(&all).ok_or("the faces are coplanar: the rig geometry cannot place it")?;
+    let pm = dlt_fit(&all).ok_or("the faces are coplanar: the rig geometry cannot place it")?;
     let (rmin, rmax) = corners
         .iter()
         .fold((usize::MAX, 0), |m, c| (m.0.min(c.row), m.1.max(c.row)));
