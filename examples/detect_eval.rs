@@ -21,7 +21,7 @@ use cubecal::camera::Pose;
 use cubecal::capture::synthetic::{frame_paths, ground_truth, render, write_frame};
 use cubecal::detect::score::{EvalSet, Summary, score};
 use cubecal::detect::{CornerFinder, detect};
-use cubecal::target::Rig;
+use cubecal::rig::Rig;
 use nalgebra::Vector3;
 
 fn main() -> anyhow::Result<()> {

@@ -20,12 +20,13 @@
 //! ## Modules
 //! - [`camera`]: camera model — K, distortion models, project/unproject.
 //! - [`calib`]: solvers — normalized DLT, RQ, homographies, Zhang, Levenberg–Marquardt, uncertainty.
-//! - [`target`]: rig descriptions (faces, grids, square size, 3D layout) loaded from TOML.
+//! - [`rig`]: rig descriptions (faces, grids, square size, 3D layout) loaded from TOML.
 //! - [`capture`]: the `FrameSource` trait; V4L2, replay of recorded sessions, synthetic rendering.
 //! - [`detect`]: corners in a grayscale frame → checkerboard grids (→ labelled correspondences).
 //! - [`synthetic`]: synthetic 2D–3D correspondences with exact ground truth (tests, benchmarks).
 //! - [`observations`]: the correspondence file format read by `cubecal solve`.
 //! - [`turntable`]: the `Turntable` trait, serial drivers and simulators.
+//! - [`station`]: the run — plan, move, capture, detect, solve, judge, write.
 //! - [`exit`]: the process exit codes (an API).
 
 pub mod calib;
@@ -34,6 +35,7 @@ pub mod capture;
 pub mod detect;
 pub mod exit;
 pub mod observations;
+pub mod rig;
+pub mod station;
 pub mod synthetic;
-pub mod target;
 pub mod turntable;

@@ -52,6 +52,9 @@ impl ObservationsError {
 pub struct RawPoint {
     pub xyz: [f64; 3],
     pub uv: [f64; 2],
+    /// The rig face the point lies on (written by the station; optional on input).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub face: Option<String>,
 }
 
 /// One view as stored in the file.
@@ -60,6 +63,12 @@ pub struct RawView {
     #[serde(default)]
     pub name: Option<String>,
     pub points: Vec<RawPoint>,
+    /// The frame the view was detected in (a file name inside the run's session; station output).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<String>,
+    /// The view was kept out of the fit and checked against it (station output).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub held_out: bool,
 }
 
 /// The file as stored.
@@ -153,8 +162,11 @@ impl Observations {
                         .map(|c| RawPoint {
                             xyz: c.xyz.into(),
                             uv: c.uv.into(),
+                            face: None,
                         })
                         .collect(),
+                    frame: None,
+                    held_out: false,
                 })
                 .collect(),
         }

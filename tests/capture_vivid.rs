@@ -690,7 +690,7 @@ fn vivid_webcam_keeps_the_frame_source_contract() {
 #[ignore = "needs the vivid driver: run by tests/vm/run.sh"]
 fn vivid_loop_rendered_rig_is_detected_against_ground_truth() {
     let dir = env_path("CUBECAL_VM_RENDER");
-    let (rig, _) = cubecal::target::Rig::load(&dir.join("rig.toml")).unwrap();
+    let (rig, _) = cubecal::rig::Rig::load(&dir.join("rig.toml")).unwrap();
     let rendered = image::open(dir.join("frame_000.png")).unwrap().to_luma8();
     let gt: cubecal::capture::synthetic::GroundTruth =
         serde_json::from_str(&std::fs::read_to_string(dir.join("frame_000.json")).unwrap())

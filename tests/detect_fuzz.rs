@@ -23,7 +23,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use cubecal::detect::{CornerFinder, DetectError, FrameDetection, MIN_SIDE, detect};
-use cubecal::target::Rig;
+use cubecal::rig::Rig;
 use image::{GrayImage, Luma};
 use proptest::prelude::*;
 use rand::{Rng, SeedableRng};

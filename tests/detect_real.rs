@@ -65,7 +65,7 @@ fn sample_board_is_labelled_in_every_image_and_calibrates_to_the_reference() {
         env!("CARGO_MANIFEST_DIR"),
         "/fixtures/rigs/opencv_board_9x6.toml"
     );
-    let (rig, _) = cubecal::target::Rig::load(std::path::Path::new(rig_path)).unwrap();
+    let (rig, _) = cubecal::rig::Rig::load(std::path::Path::new(rig_path)).unwrap();
     let mut finder = CornerFinder::new().unwrap();
     let mut left_views = Vec::new();
     for path in dataset_images() {

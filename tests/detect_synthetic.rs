@@ -8,7 +8,7 @@ use cubecal::camera::Pose;
 use cubecal::capture::synthetic::{ground_truth, render};
 use cubecal::detect::score::{EvalSet, FaceScore, Summary, score};
 use cubecal::detect::{CornerFinder, detect};
-use cubecal::target::Rig;
+use cubecal::rig::Rig;
 use nalgebra::Vector3;
 
 fn run(set: EvalSet, n: usize) -> Vec<FaceScore> {

@@ -13,7 +13,7 @@ use cubecal::capture::synthetic::{
     GroundTruth, LinearImage, RenderSettings, SyntheticSource, default_view, gaussian_blur,
     ground_truth, random_poses, render, render_radiance, turntable_poses,
 };
-use cubecal::target::Rig;
+use cubecal::rig::Rig;
 use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
 
 fn fixture_rig(name: &str) -> Rig {

@@ -4,8 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
-use cubecal::target::svg::{PageLayout, SCALE_BAR_MM, face_svg};
-use cubecal::target::{BoardRegion, Rig, RigWarning, SquareColour, TargetError};
+use cubecal::rig::svg::{PageLayout, SCALE_BAR_MM, face_svg};
+use cubecal::rig::{BoardRegion, Rig, RigError, RigWarning, SquareColour};
 use nalgebra::Vector3;
 use proptest::prelude::*;
 
@@ -41,11 +41,11 @@ col_dir = [-1, 0, 0]
 row_dir = [0, 0, 1]
 "#;
 
-fn parse(text: &str) -> Result<(Rig, Vec<RigWarning>), TargetError> {
+fn parse(text: &str) -> Result<(Rig, Vec<RigWarning>), RigError> {
     Rig::from_toml_str(text, "rig.toml")
 }
 
-fn err(text: &str) -> TargetError {
+fn err(text: &str) -> RigError {
     match parse(text) {
         Ok(_) => panic!("expected an error for:\n{text}"),
         Err(e) => e,
@@ -53,7 +53,7 @@ fn err(text: &str) -> TargetError {
 }
 
 /// The full message with its causes, as the CLI prints it.
-fn chain(e: &TargetError) -> String {
+fn chain(e: &RigError) -> String {
     let mut s = e.to_string();
     let mut cur: Option<&dyn std::error::Error> = std::error::Error::source(e);
     while let Some(c) = cur {
@@ -184,7 +184,7 @@ fn warnings_are_returned_as_data() {
 fn missing_keys_are_named_by_path() {
     let e = err(&GOOD.replacen("cols = 6\n", "", 1));
     assert!(
-        matches!(&e, TargetError::Missing { key, .. } if key == "faces[1].cols"),
+        matches!(&e, RigError::Missing { key, .. } if key == "faces[1].cols"),
         "{e:?}"
     );
     assert_eq!(e.to_string(), "rig.toml: faces[1].cols: missing");
@@ -240,7 +240,7 @@ fn bad_values_are_named_by_path() {
 fn non_orthonormal_axes_are_rejected_with_the_face() {
     let e = err(&GOOD.replacen("row_dir = [0, 0, 1]", "row_dir = [0, 0.5, 0.866]", 1));
     assert!(
-        matches!(&e, TargetError::NotOrthonormal { index: 0, .. }),
+        matches!(&e, RigError::NotOrthonormal { index: 0, .. }),
         "{e:?}"
     );
     assert!(
@@ -264,7 +264,7 @@ fn non_orthonormal_axes_are_rejected_with_the_face() {
 #[test]
 fn toml_syntax_and_type_errors_carry_line_and_column() {
     let e = err(&GOOD.replacen("cols = 6", "cols = = 6", 1));
-    assert!(matches!(e, TargetError::Syntax { .. }));
+    assert!(matches!(e, RigError::Syntax { .. }));
     let msg = chain(&e);
     assert!(
         msg.starts_with("rig.toml: not a valid rig description | "),
@@ -290,7 +290,7 @@ fn overlapping_faces_are_rejected() {
         .replacen("origin = [160, 0, 40]", "origin = [0, 100, 40]", 1)
         .replacen("col_dir = [-1, 0, 0]", "col_dir = [0, 1, 0]", 1));
     assert!(
-        matches!(&e, TargetError::FacesOverlap { a, b, .. } if a == "left" && b == "right"),
+        matches!(&e, RigError::FacesOverlap { a, b, .. } if a == "left" && b == "right"),
         "{e:?}"
     );
     assert!(e.to_string().contains("coplanar"), "{e}");
@@ -420,7 +420,7 @@ fn svg_geometry_matches_the_rig_at_physical_scale() {
 fn cli_target_print_writes_one_svg_per_face() {
     let dir = tempfile::tempdir().unwrap();
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_cubecal"))
-        .args(["target", "print"])
+        .args(["rig", "print"])
         .arg(fixture("inside_corner.toml"))
         .arg("--out")
         .arg(dir.path())

@@ -19,7 +19,7 @@ use super::{CalibError, View};
 use crate::camera::{Camera, DistortionModel, Pose};
 
 /// How the initial intrinsics were obtained.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum InitMethod {
     /// DLT + RQ on views of a 3D rig, K shared by median.

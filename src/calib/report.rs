@@ -3,20 +3,20 @@
 
 use std::collections::BTreeMap;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::Calibration;
 use super::init::InitMethod;
 
 /// Distortion model and OpenCV-ordered coefficients.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DistortionReport {
-    pub model: &'static str,
+    pub model: String,
     pub coefficients: Vec<f64>,
 }
 
 /// Per-view result.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ViewReport {
     pub name: String,
     /// `cam_from_rig` rotation, 3×3 row-major.
@@ -36,14 +36,21 @@ pub struct ViewReport {
 }
 
 /// The full result.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CalibrationReport {
     pub image_size: [u32; 2],
     /// `K`, 3×3 row-major.
     pub camera_matrix: [[f64; 3]; 3],
     pub distortion: DistortionReport,
     /// Standard deviation of each estimated intrinsic parameter, by name.
-    pub std_dev: BTreeMap<&'static str, f64>,
+    pub std_dev: BTreeMap<String, f64>,
+    /// Names of the estimated intrinsic parameters, in the order of `covariance`.
+    #[serde(default)]
+    pub free_params: Vec<String>,
+    /// Covariance of the estimated intrinsic parameters (row-major, `free_params` order), scaled by
+    /// `sigma_px²`.
+    #[serde(default)]
+    pub covariance: Vec<Vec<f64>>,
     /// RMS of residual components `√(Σr²/2n)` (px).
     pub rms_px: f64,
     /// OpenCV's reprojection error `√(Σ‖r‖²/n)` (px).
@@ -54,7 +61,7 @@ pub struct CalibrationReport {
     pub n_params: usize,
     pub views: Vec<ViewReport>,
     pub iterations: usize,
-    pub termination: &'static str,
+    pub termination: String,
     pub converged: bool,
     pub init_method: InitMethod,
 }
@@ -73,10 +80,18 @@ impl From<&Calibration> for CalibrationReport {
             image_size: c.camera.image_size,
             camera_matrix: rows(&k),
             distortion: DistortionReport {
-                model: c.camera.model.name(),
+                model: c.camera.model.name().to_string(),
                 coefficients: c.camera.distortion_coefficients(),
             },
-            std_dev: c.std_dev_by_name().into_iter().collect(),
+            std_dev: c
+                .std_dev_by_name()
+                .into_iter()
+                .map(|(k, v)| (k.to_string(), v))
+                .collect(),
+            free_params: c.free_params.iter().map(|s| s.to_string()).collect(),
+            covariance: (0..c.covariance.nrows())
+                .map(|i| c.covariance.row(i).iter().copied().collect())
+                .collect(),
             rms_px: c.rms_px,
             rms_reprojection_px: c.rms_reprojection_px,
             sigma_px: c.sigma_px,
@@ -98,7 +113,7 @@ impl From<&Calibration> for CalibrationReport {
                 })
                 .collect(),
             iterations: c.iterations,
-            termination: c.termination.as_str(),
+            termination: c.termination.as_str().to_string(),
             converged: c.termination.is_converged(),
             init_method: c.init_method,
         }

@@ -33,8 +33,8 @@ use serde::{Deserialize, Serialize};
 
 use super::{CaptureError, Frame, FrameSource, GrayImage, SourceInfo};
 use crate::camera::{Camera, CameraError, DistortionModel, Pose};
+use crate::rig::{BoardRegion, Rig, SquareColour};
 use crate::synthetic::look_at;
-use crate::target::{BoardRegion, Rig, SquareColour};
 
 /// Errors from rendering and writing synthetic frames.
 #[derive(Debug, thiserror::Error)]
@@ -898,7 +898,7 @@ pub fn write_frame(
             path: png.clone(),
             source,
         })?;
-    crate::target::write_atomic(&png, &bytes).map_err(|source| SyntheticError::Write {
+    crate::rig::write_atomic(&png, &bytes).map_err(|source| SyntheticError::Write {
         path: png.clone(),
         source,
     })?;
@@ -906,11 +906,9 @@ pub fn write_frame(
         path: json.clone(),
         source,
     })?;
-    crate::target::write_atomic(&json, text.as_bytes()).map_err(|source| {
-        SyntheticError::Write {
-            path: json.clone(),
-            source,
-        }
+    crate::rig::write_atomic(&json, text.as_bytes()).map_err(|source| SyntheticError::Write {
+        path: json.clone(),
+        source,
     })?;
     Ok((png, json))
 }

@@ -11,7 +11,7 @@ use anyhow::Context;
 use cubecal::detect::label::LabelledCorner;
 use cubecal::detect::{self, CornerFinder, FrameDetection, overlay};
 use cubecal::exit;
-use cubecal::target::Rig;
+use cubecal::rig::Rig;
 use image::GrayImage;
 use nalgebra::{Vector2, Vector3};
 use serde::Serialize;

@@ -9,8 +9,8 @@ use cubecal::exit;
 mod capture;
 mod detect;
 mod render;
+mod rig;
 mod solve;
-mod target;
 mod turntable;
 
 /// cubecal — camera calibration station.
@@ -35,9 +35,9 @@ enum Command {
     Render(render::RenderArgs),
     /// Find and label the rig's checkerboard faces in image files (optionally drawing overlays).
     Detect(detect::DetectArgs),
-    /// Work with rig descriptions (print targets).
-    #[command(subcommand)]
-    Target(target::TargetCommand),
+    /// Work with rig descriptions (print the faces as targets). `target` is an alias.
+    #[command(subcommand, alias = "target")]
+    Rig(rig::RigCommand),
     /// List the V4L2 capture devices on this machine.
     Devices(capture::DevicesArgs),
     /// Record a session of frames from a camera.
@@ -73,7 +73,7 @@ pub fn main() -> ExitCode {
         Command::Solve(args) => solve::run(args, out),
         Command::Render(args) => render::run(args, out),
         Command::Detect(args) => detect::run(args, out),
-        Command::Target(cmd) => target::run(cmd, out),
+        Command::Rig(cmd) => rig::run(cmd, out),
         Command::Devices(args) => capture::run_devices(args, out),
         Command::Record(args) => capture::run_record(args, out),
         Command::Turntable(cmd) => turntable::run(cmd, out),
@@ -112,7 +112,7 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
         if let Some(e) = cause.downcast_ref::<cubecal::observations::ObservationsError>() {
             return e.exit_code();
         }
-        if let Some(e) = cause.downcast_ref::<cubecal::target::TargetError>() {
+        if let Some(e) = cause.downcast_ref::<cubecal::rig::RigError>() {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::capture::CaptureError>() {

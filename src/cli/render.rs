@@ -9,7 +9,7 @@ use cubecal::capture::synthetic::{
     Palette, RenderSettings, SyntheticError, default_view, ground_truth, random_poses, render,
     turntable_poses, write_frame,
 };
-use cubecal::target::Rig;
+use cubecal::rig::Rig;
 
 use super::Output;
 
@@ -241,7 +241,7 @@ pub fn run(args: RenderArgs, out: Output) -> anyhow::Result<u8> {
 #[allow(clippy::print_stdout)]
 fn print_summary(
     rig: &Rig,
-    warnings: &[cubecal::target::RigWarning],
+    warnings: &[cubecal::rig::RigWarning],
     frames: &[FrameSummary],
     out: Output,
 ) {

@@ -154,7 +154,7 @@ fn print_human(r: &CalibrationReport, args: &SolveArgs) {
     for (name, v) in names.iter().zip(&r.distortion.coefficients) {
         let s = r
             .std_dev
-            .get(name)
+            .get(*name)
             .map(|s| format!(" ± {s:.6}"))
             .unwrap_or_else(|| " (fixed)".into());
         println!("  {name} = {v:.6}{s}");

@@ -63,7 +63,7 @@ use super::grid::MIN_LINES;
 use super::place::{Partial, place};
 use super::refine::{self, RefineFailure};
 use crate::calib::linear::{COPLANAR_TOLERANCE, dlt, relative_thickness};
-use crate::target::{Rig, SquareColour};
+use crate::rig::{Rig, SquareColour};
 
 /// Mean white-minus-black square intensity (grey levels) needed for an orientation to count as decided.
 pub const MIN_COLOUR_CONTRAST: f64 = 10.0;

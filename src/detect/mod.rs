@@ -95,7 +95,7 @@ impl FrameDetection {
 pub fn detect(
     finder: &mut CornerFinder,
     img: &GrayImage,
-    rig: &crate::target::Rig,
+    rig: &crate::rig::Rig,
 ) -> Result<FrameDetection, DetectError> {
     let corners = finder.find(img)?;
     let grids = grid::assemble(&corners);

@@ -19,7 +19,7 @@ use image::{GrayImage, Rgb, RgbImage};
 use nalgebra::Vector2;
 
 use super::FrameDetection;
-use crate::target::Rig;
+use crate::rig::Rig;
 
 /// Face colours, in rig face order (wrapping around): saturated hues that stand out from a grey frame
 /// and from each other.
@@ -141,7 +141,7 @@ pub fn write_png(overlay: &RgbImage, path: &Path) -> Result<(), OverlayError> {
             path: path.to_path_buf(),
             source,
         })?;
-    crate::target::write_atomic(path, &bytes).map_err(|source| OverlayError::Write {
+    crate::rig::write_atomic(path, &bytes).map_err(|source| OverlayError::Write {
         path: path.to_path_buf(),
         source,
     })

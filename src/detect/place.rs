@@ -43,7 +43,7 @@ use super::label::{
     ColourSums, FaceDetection, LabelledCorner, MIN_COLOUR_CONTRAST, Rejection, dlt_fit,
     mean_square_intensity, repeated, reprojection_rms,
 };
-use crate::target::Rig;
+use crate::rig::Rig;
 
 /// The best placement's geometric RMS must be this many times smaller than any other's.
 pub const PLACEMENT_MARGIN: f64 = 3.0;

@@ -11,7 +11,7 @@ use nalgebra::Vector3;
 use super::FrameDetection;
 use crate::camera::{Camera, DistortionModel, Pose};
 use crate::capture::synthetic::{GroundTruth, Palette, RenderSettings, random_poses};
-use crate::target::Rig;
+use crate::rig::Rig;
 
 /// The two image sets the detector is measured on (issue 4).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -13,7 +13,7 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use super::{Face, Rig, SquareColour, TargetError};
+use super::{Face, Rig, RigError, SquareColour};
 
 /// Height of the label strip below the board, mm.
 pub const LABEL_STRIP_MM: f64 = 22.0;
@@ -172,19 +172,17 @@ pub fn face_file_name(face: &Face) -> String {
 }
 
 /// Write one SVG per face into `dir` (created if needed), atomically per file; returns the paths.
-pub fn write_face_svgs(rig: &Rig, dir: &Path) -> Result<Vec<PathBuf>, TargetError> {
-    std::fs::create_dir_all(dir).map_err(|source| TargetError::Write {
+pub fn write_face_svgs(rig: &Rig, dir: &Path) -> Result<Vec<PathBuf>, RigError> {
+    std::fs::create_dir_all(dir).map_err(|source| RigError::Write {
         path: dir.display().to_string(),
         source,
     })?;
     let mut paths = Vec::new();
     for face in &rig.faces {
         let path = dir.join(face_file_name(face));
-        write_atomic(&path, face_svg(rig, face).as_bytes()).map_err(|source| {
-            TargetError::Write {
-                path: path.display().to_string(),
-                source,
-            }
+        write_atomic(&path, face_svg(rig, face).as_bytes()).map_err(|source| RigError::Write {
+            path: path.display().to_string(),
+            source,
         })?;
         tracing::info!(face = %face.name, path = %path.display(), "wrote printable board");
         paths.push(path);

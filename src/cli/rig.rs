@@ -1,12 +1,12 @@
-//! `cubecal target ...`: work with rig descriptions.
+//! `cubecal rig ...` (alias `target`): work with rig descriptions.
 
 use clap::Subcommand;
-use cubecal::target::{Rig, svg};
+use cubecal::rig::{Rig, svg};
 
 use super::Output;
 
 #[derive(Debug, Subcommand)]
-pub enum TargetCommand {
+pub enum RigCommand {
     /// Write one printable SVG per face of a rig, at exact physical scale (print at 100 %, then check
     /// the 100 mm scale bar with a ruler).
     Print {
@@ -18,9 +18,9 @@ pub enum TargetCommand {
     },
 }
 
-pub fn run(cmd: TargetCommand, out: Output) -> anyhow::Result<u8> {
+pub fn run(cmd: RigCommand, out: Output) -> anyhow::Result<u8> {
     match cmd {
-        TargetCommand::Print { rig, out: dir } => {
+        RigCommand::Print { rig, out: dir } => {
             let (rig, warnings) = Rig::load(&rig)?;
             let paths = svg::write_face_svgs(&rig, &dir)?;
             print_written(&rig, &warnings, &paths, out);
@@ -32,7 +32,7 @@ pub fn run(cmd: TargetCommand, out: Output) -> anyhow::Result<u8> {
 #[allow(clippy::print_stdout)]
 fn print_written(
     rig: &Rig,
-    warnings: &[cubecal::target::RigWarning],
+    warnings: &[cubecal::rig::RigWarning],
     paths: &[std::path::PathBuf],
     out: Output,
 ) {

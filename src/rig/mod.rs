@@ -53,7 +53,7 @@ pub const GEOMETRY_TOLERANCE_MM: f64 = 1e-3;
 /// Errors loading or validating a rig description. `path` is the file (or the name given to
 /// [`Rig::from_toml_str`]); `key` is the TOML key path such as `faces[2].cols`.
 #[derive(Debug, thiserror::Error)]
-pub enum TargetError {
+pub enum RigError {
     #[error("cannot read rig file {path}")]
     Read {
         path: String,
@@ -100,17 +100,17 @@ pub enum TargetError {
     },
 }
 
-impl TargetError {
+impl RigError {
     /// The process exit code for this error (see [`crate::exit`]).
     pub fn exit_code(&self) -> u8 {
         match self {
-            TargetError::Read { .. }
-            | TargetError::Syntax { .. }
-            | TargetError::Missing { .. }
-            | TargetError::Invalid { .. }
-            | TargetError::NotOrthonormal { .. }
-            | TargetError::FacesOverlap { .. } => crate::exit::BAD_INPUT,
-            TargetError::Write { .. } => crate::exit::INTERNAL,
+            RigError::Read { .. }
+            | RigError::Syntax { .. }
+            | RigError::Missing { .. }
+            | RigError::Invalid { .. }
+            | RigError::NotOrthonormal { .. }
+            | RigError::FacesOverlap { .. } => crate::exit::BAD_INPUT,
+            RigError::Write { .. } => crate::exit::INTERNAL,
         }
     }
 }
@@ -338,8 +338,8 @@ pub struct RawFace {
 
 impl Rig {
     /// Read, parse and validate a rig file; warnings are also logged.
-    pub fn load(path: &Path) -> Result<(Rig, Vec<RigWarning>), TargetError> {
-        let text = std::fs::read_to_string(path).map_err(|source| TargetError::Read {
+    pub fn load(path: &Path) -> Result<(Rig, Vec<RigWarning>), RigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| RigError::Read {
             path: path.display().to_string(),
             source,
         })?;
@@ -347,8 +347,8 @@ impl Rig {
     }
 
     /// Parse and validate rig TOML; `path` names the source in errors.
-    pub fn from_toml_str(text: &str, path: &str) -> Result<(Rig, Vec<RigWarning>), TargetError> {
-        let raw: RawRig = toml::from_str(text).map_err(|source| TargetError::Syntax {
+    pub fn from_toml_str(text: &str, path: &str) -> Result<(Rig, Vec<RigWarning>), RigError> {
+        let raw: RawRig = toml::from_str(text).map_err(|source| RigError::Syntax {
             path: path.to_string(),
             source,
         })?;
@@ -439,12 +439,12 @@ fn fmt_vec(v: &[f64; 3]) -> String {
 
 impl RawRig {
     /// Validate into a [`Rig`] plus warnings; `path` names the source in errors.
-    pub fn validate(self, path: &str) -> Result<(Rig, Vec<RigWarning>), TargetError> {
-        let missing = |key: &str| TargetError::Missing {
+    pub fn validate(self, path: &str) -> Result<(Rig, Vec<RigWarning>), RigError> {
+        let missing = |key: &str| RigError::Missing {
             path: path.to_string(),
             key: key.to_string(),
         };
-        let invalid = |key: &str, expected: &str, value: String| TargetError::Invalid {
+        let invalid = |key: &str, expected: &str, value: String| RigError::Invalid {
             path: path.to_string(),
             key: key.to_string(),
             expected: expected.to_string(),
@@ -458,7 +458,7 @@ impl RawRig {
         if units != "mm" {
             return Err(invalid("units", "\"mm\"", format!("{units:?}")));
         }
-        let finite_vec = |key: &str, v: [f64; 3]| -> Result<Vector3<f64>, TargetError> {
+        let finite_vec = |key: &str, v: [f64; 3]| -> Result<Vector3<f64>, RigError> {
             if v.iter().all(|x| x.is_finite()) {
                 Ok(Vector3::from(v))
             } else {
@@ -499,7 +499,7 @@ impl RawRig {
                     format!("{name:?} (also faces[{other}])"),
                 ));
             }
-            let count = |field: &str, v: Option<i64>| -> Result<usize, TargetError> {
+            let count = |field: &str, v: Option<i64>| -> Result<usize, RigError> {
                 let v = v.ok_or_else(|| missing(&key(field)))?;
                 if v < 2 {
                     return Err(invalid(
@@ -541,7 +541,7 @@ impl RawRig {
                 &key("row_dir"),
                 rf.row_dir.ok_or_else(|| missing(&key("row_dir")))?,
             )?;
-            let not_ortho = |detail: String| TargetError::NotOrthonormal {
+            let not_ortho = |detail: String| RigError::NotOrthonormal {
                 path: path.to_string(),
                 index: k,
                 face: name.clone(),
@@ -577,7 +577,7 @@ impl RawRig {
         for a in 0..faces.len() {
             for b in a + 1..faces.len() {
                 if let Some(detail) = overlap(&faces[a], &faces[b]) {
-                    return Err(TargetError::FacesOverlap {
+                    return Err(RigError::FacesOverlap {
                         path: path.to_string(),
                         a: faces[a].name.clone(),
                         b: faces[b].name.clone(),

@@ -1,0 +1,95 @@
+//! Typed events the station emits while it runs. The library never prints: the CLI renders these as a
+//! progress bar and per-pose lines (or one JSON object per line with `--json`), the service as
+//! systemd `STATUS=` lines and watchdog pings.
+
+use serde::Serialize;
+
+use super::verdict::Verdict;
+
+/// Something that happened during a run. Serialised with a `"event"` tag (snake_case names).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
+pub enum Event {
+    /// The camera and the turntable are open (the service says `READY=1` here).
+    Opened {
+        source: String,
+        width: u32,
+        height: u32,
+        turntable: String,
+    },
+    /// Pose `index` (0-based) of `total` planned; `instruction` is what a manual operator is asked.
+    PosePlanned {
+        index: usize,
+        total: usize,
+        angle_deg: Option<f64>,
+        instruction: Option<String>,
+    },
+    /// The turntable is moving to pose `index`.
+    Moving { index: usize, angle_deg: f64 },
+    /// The turntable reports it has settled.
+    Settled { index: usize, angle_deg: f64 },
+    /// A frame was grabbed for pose `index` after dropping `flushed` stale frames.
+    FrameGrabbed {
+        index: usize,
+        sequence: u64,
+        flushed: usize,
+    },
+    /// The view of pose `index` was accepted.
+    ViewAccepted {
+        index: usize,
+        name: String,
+        faces: usize,
+        corners: usize,
+    },
+    /// The view of pose `index` was rejected, with a reason a person can act on.
+    ViewRejected {
+        index: usize,
+        name: String,
+        reason: String,
+    },
+    /// Coverage after the latest view: fraction of the image grid cells holding corners.
+    Coverage {
+        views: usize,
+        fraction: f64,
+        cells_covered: usize,
+        cells_total: usize,
+    },
+    /// The final solve started.
+    Solving { views: usize, points: usize },
+    /// The verdict of the run.
+    Verdict { verdict: Verdict },
+    /// Emitted by the station loop while waiting on hardware, so a service can ping its watchdog
+    /// from the loop itself (a stalled loop stops the pings).
+    Alive,
+}
+
+/// Where events go.
+pub trait EventSink {
+    fn event(&mut self, event: &Event);
+}
+
+/// A sink that drops everything.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct NullSink;
+
+impl EventSink for NullSink {
+    fn event(&mut self, _event: &Event) {}
+}
+
+/// A sink that keeps every event (tests, reports).
+#[derive(Debug, Default, Clone)]
+pub struct Recorder {
+    pub events: Vec<Event>,
+}
+
+impl EventSink for Recorder {
+    fn event(&mut self, event: &Event) {
+        self.events.push(event.clone());
+    }
+}
+
+impl<F: FnMut(&Event)> EventSink for F {
+    fn event(&mut self, event: &Event) {
+        self(event)
+    }
+}
