@@ -167,12 +167,66 @@ fn sha256_hex(bytes: &[u8]) -> String {
         .collect()
 }
 
-/// Writes a session: frames as they come, the manifest last.
+/// Writes a session: frames as they come, the manifest last. With [`SessionWriter::create_background`]
+/// the frames are encoded and written by a worker thread (a station encodes while the turntable moves),
+/// and a failed write is reported by the next [`add_frame`](SessionWriter::add_frame) or by
+/// [`finish`](SessionWriter::finish).
 #[derive(Debug)]
 pub struct SessionWriter {
     dir: PathBuf,
     header: SessionHeader,
     frames: Vec<FrameEntry>,
+    queued: usize,
+    worker: Option<Worker>,
+}
+
+type Job = (usize, Frame, Option<f64>);
+
+#[derive(Debug)]
+struct Worker {
+    jobs: std::sync::mpsc::SyncSender<Job>,
+    results: std::sync::mpsc::Receiver<Result<FrameEntry, SessionError>>,
+    thread: std::thread::JoinHandle<()>,
+}
+
+/// Encode one frame as PNG into `dir` and describe it.
+fn write_frame_file(
+    dir: &Path,
+    index: usize,
+    frame: &Frame,
+    angle_deg: Option<f64>,
+) -> Result<FrameEntry, SessionError> {
+    let file = format!("frame_{index:06}.png");
+    let path = dir.join(&file);
+    // Fast compression: a station writes every frame while it waits for the next move, and the
+    // default level costs several times as much for ~10 % smaller files of noisy frames.
+    let mut png = Vec::new();
+    {
+        use image::ImageEncoder;
+        use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+        PngEncoder::new_with_quality(&mut png, CompressionType::Fast, FilterType::Adaptive)
+            .write_image(
+                frame.image.as_raw(),
+                frame.image.width(),
+                frame.image.height(),
+                image::ExtendedColorType::L8,
+            )
+            .map_err(|e| SessionError::Encode {
+                path: path.clone(),
+                source: e,
+            })?;
+    }
+    std::fs::write(&path, &png).map_err(|e| SessionError::Write {
+        path: path.clone(),
+        source: e,
+    })?;
+    Ok(FrameEntry {
+        file,
+        sequence: frame.sequence,
+        timestamp_ns: u64::try_from(frame.timestamp.as_nanos()).unwrap_or(u64::MAX),
+        angle_deg,
+        sha256: sha256_hex(&png),
+    })
 }
 
 impl SessionWriter {
@@ -191,37 +245,79 @@ impl SessionWriter {
             dir: dir.to_path_buf(),
             header,
             frames: Vec::new(),
+            queued: 0,
+            worker: None,
         })
     }
 
-    /// Write one frame as PNG and remember its checksum.
-    pub fn add_frame(&mut self, frame: &Frame, angle_deg: Option<f64>) -> Result<(), SessionError> {
-        let file = format!("frame_{:06}.png", self.frames.len());
-        let path = self.dir.join(&file);
-        let mut png = Vec::new();
-        frame
-            .image
-            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-            .map_err(|e| SessionError::Encode {
-                path: path.clone(),
+    /// Like [`create`](SessionWriter::create), with frames encoded and written by a worker thread
+    /// (at most 4 frames queued; `add_frame` waits when the disk is slower than the camera).
+    pub fn create_background(
+        dir: &Path,
+        header: SessionHeader,
+    ) -> Result<SessionWriter, SessionError> {
+        let mut w = SessionWriter::create(dir, header)?;
+        let (jobs, rx) = std::sync::mpsc::sync_channel::<Job>(4);
+        let (tx, results) = std::sync::mpsc::channel();
+        let dir = w.dir.clone();
+        let thread = std::thread::Builder::new()
+            .name("session-writer".into())
+            .spawn(move || {
+                for (index, frame, angle) in rx {
+                    if tx
+                        .send(write_frame_file(&dir, index, &frame, angle))
+                        .is_err()
+                    {
+                        break;
+                    }
+                }
+            })
+            .map_err(|e| SessionError::Write {
+                path: w.dir.clone(),
                 source: e,
             })?;
-        std::fs::write(&path, &png).map_err(|e| SessionError::Write {
-            path: path.clone(),
-            source: e,
-        })?;
-        self.frames.push(FrameEntry {
-            file,
-            sequence: frame.sequence,
-            timestamp_ns: u64::try_from(frame.timestamp.as_nanos()).unwrap_or(u64::MAX),
-            angle_deg,
-            sha256: sha256_hex(&png),
+        w.worker = Some(Worker {
+            jobs,
+            results,
+            thread,
         });
+        Ok(w)
+    }
+
+    /// Take the worker's finished frames; the first failed write is returned.
+    fn collect(&mut self) -> Result<(), SessionError> {
+        if let Some(w) = &self.worker {
+            while let Ok(r) = w.results.try_recv() {
+                self.frames.push(r?);
+            }
+        }
         Ok(())
     }
 
+    /// Write one frame as PNG and remember its checksum (queued to the worker in background mode).
+    pub fn add_frame(&mut self, frame: &Frame, angle_deg: Option<f64>) -> Result<(), SessionError> {
+        let index = self.queued;
+        match &self.worker {
+            None => {
+                let entry = write_frame_file(&self.dir, index, frame, angle_deg)?;
+                self.frames.push(entry);
+            }
+            Some(w) => {
+                let job = (index, frame.clone(), angle_deg);
+                if w.jobs.send(job).is_err() {
+                    // The worker stopped: its error is waiting in the results.
+                    self.collect()?;
+                }
+                self.collect()?;
+            }
+        }
+        self.queued += 1;
+        Ok(())
+    }
+
+    /// Frames added so far (queued or written).
     pub fn frame_count(&self) -> usize {
-        self.frames.len()
+        self.queued
     }
 
     /// The header the manifest will carry (e.g. to record how the session ended before `finish`).
@@ -230,7 +326,20 @@ impl SessionWriter {
     }
 
     /// Write the manifest atomically (temp file in the directory, fsync, rename) and return its path.
-    pub fn finish(self) -> Result<PathBuf, SessionError> {
+    pub fn finish(mut self) -> Result<PathBuf, SessionError> {
+        if let Some(w) = self.worker.take() {
+            drop(w.jobs);
+            let results: Vec<_> = w.results.iter().collect();
+            if w.thread.join().is_err() {
+                return Err(SessionError::Write {
+                    path: self.dir.clone(),
+                    source: std::io::Error::other("the session writer thread panicked"),
+                });
+            }
+            for r in results {
+                self.frames.push(r?);
+            }
+        }
         let path = self.dir.join(MANIFEST);
         let manifest = Manifest {
             format_version: FORMAT_VERSION,

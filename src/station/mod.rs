@@ -245,14 +245,32 @@ pub fn run(
             "complete": false,
         }),
     };
-    let mut session = SessionWriter::create(&session_dir, header)?;
+    let mut session = SessionWriter::create_background(&session_dir, header)?;
     sink.event(&Event::Opened {
         source: info.name.clone(),
         width: info.width,
         height: info.height,
         turntable: hw.turntable_name.clone(),
     });
-    let outcome = capture_poses(spec, &mut hw, &mut session, sink, stop);
+    let mut outcome = capture_poses(spec, &mut hw, &mut session, sink, stop);
+    // A signal can also cut a wait short (EINTR on the serial port or the camera): the run was
+    // interrupted, whatever the interrupted call reported.
+    if stop.load(Ordering::SeqCst)
+        && let Err(e) = &outcome
+        && !matches!(e, StationError::Interrupted { .. })
+    {
+        tracing::info!(error = %e, "stopped by a signal");
+        let fpp = spec.config.camera.frames_per_pose.max(1) as usize;
+        let total = match &hw.poses {
+            Poses::Angles(a) => a.len(),
+            Poses::Frames { angles } => angles.len(),
+        };
+        outcome = Err(StationError::Interrupted {
+            pose: session.frame_count() / fpp,
+            total,
+            session: session_dir.clone(),
+        });
+    }
     // Whatever happened, close the session: complete, or marked with what ended it.
     let end = serde_json::json!(outcome.is_ok());
     if let Err(e) = &outcome {

@@ -2,9 +2,9 @@
 //! agree: a rig or camera still moving, or a frame from before the move, differs) and **blur** (the
 //! width of the checkerboard's edges where the detector found them).
 //!
-//! Motion compares 8×8 block means of two frames: averaging 64 pixels cuts sensor noise by 8, so a
-//! block differing by more than [`MOTION_LEVEL`] grey levels is a change of the scene, not noise
-//! (noise σ 5 gives block-difference σ ≈ 0.9). The result is the fraction of blocks that changed.
+//! Motion compares 8×8 block means of two frames (every other row: 32 pixels, cutting sensor noise by
+//! 5.7), so a block differing by more than [`MOTION_LEVEL`] grey levels is a change of the scene, not
+//! noise (noise σ 5 gives block-difference σ ≈ 1.2). The result is the fraction of blocks that changed.
 //!
 //! Blur is measured on the edges between adjacent labelled corners: across the midpoint of each
 //! edge the intensity profile is a blurred step; for a Gaussian blur σ its 10–90 % rise is 2.563 σ.
@@ -35,15 +35,22 @@ pub fn motion_fraction(a: &GrayImage, b: &GrayImage) -> f64 {
     let mut changed = 0usize;
     for by in 0..bh {
         for bx in 0..bw {
-            let mut d: i64 = 0;
-            for y in by * BLOCK..(by + 1) * BLOCK {
-                let row = (y * w) as usize;
-                for x in bx * BLOCK..(bx + 1) * BLOCK {
-                    let i = row + x as usize;
-                    d += i64::from(ra[i]) - i64::from(rb[i]);
-                }
+            // Every other row of the block: 32 samples cut the noise by 5.7, plenty against
+            // MOTION_LEVEL, at half the cost.
+            let mut d: i32 = 0;
+            for y in (by * BLOCK..(by + 1) * BLOCK).step_by(2) {
+                let row = (y * w + bx * BLOCK) as usize;
+                let (a, b) = (
+                    &ra[row..row + BLOCK as usize],
+                    &rb[row..row + BLOCK as usize],
+                );
+                d += a
+                    .iter()
+                    .zip(b)
+                    .map(|(&p, &q)| i32::from(p) - i32::from(q))
+                    .sum::<i32>();
             }
-            if (d as f64 / f64::from(BLOCK * BLOCK)).abs() > MOTION_LEVEL {
+            if (f64::from(d) / f64::from(BLOCK * BLOCK / 2)).abs() > MOTION_LEVEL {
                 changed += 1;
             }
         }
