@@ -8,6 +8,7 @@ use cubecal::exit;
 
 mod capture;
 mod detect;
+mod profile;
 mod render;
 mod rig;
 mod solve;
@@ -45,6 +46,9 @@ enum Command {
     /// Bring up, drive or simulate a serial turntable.
     #[command(subcommand)]
     Turntable(turntable::TurntableCommand),
+    /// List, show, export, compare and roll back per-camera profiles in the profile store.
+    #[command(subcommand)]
+    Profile(profile::ProfileCommand),
 }
 
 /// Global output options every subcommand receives.
@@ -77,6 +81,7 @@ pub fn main() -> ExitCode {
         Command::Devices(args) => capture::run_devices(args, out),
         Command::Record(args) => capture::run_record(args, out),
         Command::Turntable(cmd) => turntable::run(cmd, out),
+        Command::Profile(cmd) => profile::run(cmd, out),
     };
     match result {
         Ok(code) => ExitCode::from(code),
@@ -132,6 +137,15 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
         }
         if let Some(e) = cause.downcast_ref::<detect::DetectCliError>() {
             return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::profile::ProfileError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::profile::export::ExportError>() {
+            return e.exit_code();
+        }
+        if cause.downcast_ref::<profile::UsageError>().is_some() {
+            return exit::USAGE;
         }
     }
     exit::INTERNAL
