@@ -372,6 +372,8 @@ fn hostile_identities() -> Vec<String> {
         "unicode-é-漢字".into(),
         "CON".into(),
         "-rf".into(),
+        // looks like the folder of "a/b": must still name its own camera
+        folder_name("a/b"),
     ]
 }
 
@@ -1071,5 +1073,85 @@ fn a_full_tmpfs_gives_a_typed_error_and_keeps_the_previous_profile() {
             .lines()
             .find(|l| l.contains("DISK-FULL-OK"))
             .unwrap_or("")
+    );
+}
+
+// ---------------------------------------------------------------------------------------------------
+// the command line
+
+fn cubecal(args: &[&str], store: &Path) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args(args)
+        .arg("--store")
+        .arg(store)
+        .output()
+        .unwrap_or_else(|e| panic!("{e}"))
+}
+
+#[test]
+fn cli_show_export_diff_rollback_and_their_exit_codes() {
+    let tmp = tempdir();
+    let root = tmp.path().join("store");
+    let store = Store::open(&root).unwrap_or_else(|e| panic!("{e}"));
+    let id = "usb:046d:0825:CLI";
+    let v1 = store
+        .commit(&profile(id, 1, true), &opts())
+        .unwrap_or_else(|e| panic!("{e}"));
+    let v1_bytes = read(&v1.current);
+    store
+        .commit(&profile(id, 5000, true), &opts())
+        .unwrap_or_else(|e| panic!("{e}"));
+    let text = |o: &std::process::Output| String::from_utf8_lossy(&o.stdout).into_owned();
+
+    let out = cubecal(&["profile", "show", id], &root);
+    assert_eq!(out.status.code(), Some(0));
+    assert!(text(&out).contains("fx 1005.0000"), "{}", text(&out));
+    assert!(text(&out).contains("JUMP"), "{}", text(&out));
+    let out = cubecal(&["--json", "profile", "show", &folder_name(id)], &root);
+    assert_eq!(
+        out.stdout,
+        read(&v1.current),
+        "--json prints the stored document"
+    );
+
+    let out = cubecal(&["profile", "export", id, "--format", "ros"], &root);
+    assert_eq!(out.status.code(), Some(0));
+    let (p, _) = store.current(id).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(
+        text(&out),
+        export::ros_camera_info_yaml(&p).unwrap_or_else(|e| panic!("{e}"))
+    );
+    let out = cubecal(&["profile", "export", id, "--format", "png"], &root);
+    assert_eq!(out.status.code(), Some(2), "unknown format: usage");
+
+    let history = store.history(id).unwrap_or_else(|e| panic!("{e}"));
+    let old = history[0].to_string_lossy().into_owned();
+    let out = cubecal(&["--json", "profile", "diff", &old, id], &root);
+    assert_eq!(out.status.code(), Some(0));
+    let change: cubecal::profile::Change =
+        serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{e}"));
+    assert!(change.jump && (change.params[0].delta - 4.999).abs() < 1e-9);
+
+    let out = cubecal(&["profile", "rollback", id], &root);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(read(&v1.current), v1_bytes);
+    let out = cubecal(&["profile", "rollback", id], &root);
+    assert_eq!(out.status.code(), Some(3), "nothing left to roll back");
+    let out = cubecal(&["profile", "show", "usb:no:such:camera"], &root);
+    assert_eq!(out.status.code(), Some(3));
+
+    // a camera another writer holds is exit 4
+    let _lock = store.lock(id).unwrap_or_else(|e| panic!("{e}"));
+    let out = cubecal(&["profile", "rollback", id], &root);
+    assert_eq!(
+        out.status.code(),
+        Some(4),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
     );
 }

@@ -433,8 +433,14 @@ impl Store {
         })
     }
 
-    /// The folder a user's `DEVICE` argument names: a folder name in the store, or an identity.
+    /// The folder a user's `DEVICE` argument names: an identity, or else a folder name in the store.
+    /// The identity is tried first, so an identity crafted to look like another camera's folder name
+    /// cannot stand for that camera when its own profile exists.
     pub fn resolve(&self, device: &str) -> Result<PathBuf, ProfileError> {
+        let by_identity = self.device_dir(device);
+        if by_identity.join(CURRENT).is_file() {
+            return Ok(by_identity);
+        }
         let is_plain_name =
             !device.is_empty() && device != "." && device != ".." && !device.contains(['/', '\0']);
         if is_plain_name {
@@ -442,10 +448,6 @@ impl Store {
             if direct.join(CURRENT).is_file() {
                 return Ok(direct);
             }
-        }
-        let by_identity = self.device_dir(device);
-        if by_identity.join(CURRENT).is_file() {
-            return Ok(by_identity);
         }
         Err(ProfileError::NotFound {
             device: device.to_string(),
