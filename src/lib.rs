@@ -26,6 +26,7 @@
 //! - [`synthetic`]: synthetic 2D–3D correspondences with exact ground truth (tests, benchmarks).
 //! - [`observations`]: the correspondence file format read by `cubecal solve`.
 //! - [`turntable`]: the `Turntable` trait, serial drivers and simulators.
+//! - [`profile`]: per-device profiles — the crash-safe versioned store and the OpenCV/ROS/mrcal exports.
 //! - [`station`]: the run — plan, move, capture, detect, solve, judge, write.
 //! - [`exit`]: the process exit codes (an API).
 
@@ -35,6 +36,7 @@ pub mod capture;
 pub mod detect;
 pub mod exit;
 pub mod observations;
+pub mod profile;
 pub mod rig;
 pub mod station;
 pub mod synthetic;

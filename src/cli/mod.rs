@@ -9,6 +9,7 @@ use cubecal::exit;
 mod calibrate;
 mod capture;
 mod detect;
+mod profile;
 mod render;
 mod rig;
 mod solve;
@@ -49,6 +50,9 @@ enum Command {
     /// Bring up, drive or simulate a serial turntable.
     #[command(subcommand)]
     Turntable(turntable::TurntableCommand),
+    /// List, show, export, compare and roll back per-camera profiles in the profile store.
+    #[command(subcommand)]
+    Profile(profile::ProfileCommand),
 }
 
 /// Global output options every subcommand receives.
@@ -82,6 +86,7 @@ pub fn main() -> ExitCode {
         Command::Devices(args) => capture::run_devices(args, out),
         Command::Record(args) => capture::run_record(args, out),
         Command::Turntable(cmd) => turntable::run(cmd, out),
+        Command::Profile(cmd) => profile::run(cmd, out),
     };
     match result {
         Ok(code) => ExitCode::from(code),
@@ -146,6 +151,15 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
         }
         if let Some(e) = cause.downcast_ref::<detect::DetectCliError>() {
             return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::profile::ProfileError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::profile::export::ExportError>() {
+            return e.exit_code();
+        }
+        if cause.downcast_ref::<profile::UsageError>().is_some() {
+            return exit::USAGE;
         }
     }
     exit::INTERNAL

@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Installs the tools the export tests load cubecal's profiles with (tests/profile.rs, tests/exports/):
+#   python3-opencv                       cv2.FileStorage + cv2.projectPoints (OpenCV FileStorage YAML)
+#   python3-camera-calibration-parsers   ROS's camera_info YAML parser (camera_calibration_parsers)
+#   python3-mrcal                        mrcal.cameramodel + mrcal.project (.cameramodel)
+# All three are Debian packages (bookworm: OpenCV 4.6, ROS parsers 1.12, mrcal 2.2) for the system
+# python, /usr/bin/python3, which the tests use first (CUBECAL_PYTHON overrides). Idempotent, quiet when
+# everything is present; exits non-zero if a tool still cannot be imported afterwards.
+set -euo pipefail
+
+packages=(python3-opencv python3-camera-calibration-parsers python3-mrcal)
+check='import cv2, mrcal, camera_calibration_parsers'
+python="${CUBECAL_PYTHON:-/usr/bin/python3}"
+
+if "$python" -c "$check" >/dev/null 2>&1; then exit 0; fi
+
+missing=()
+for p in "${packages[@]}"; do
+  if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
+    missing+=("$p")
+  fi
+done
+if [ "${#missing[@]}" -gt 0 ]; then
+  SUDO=""
+  if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+  echo "install-test-tools: installing ${missing[*]}" >&2
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+if ! "$python" -c "$check"; then
+  echo "install-test-tools: $python still cannot import cv2, mrcal and camera_calibration_parsers" >&2
+  exit 1
+fi
