@@ -26,6 +26,7 @@
 //! - [`synthetic`]: synthetic 2D–3D correspondences with exact ground truth (tests, benchmarks).
 //! - [`observations`]: the correspondence file format read by `cubecal solve`.
 //! - [`turntable`]: the `Turntable` trait, serial drivers and simulators.
+//! - [`report`]: self-contained HTML run reports with plots (and the same plots as PNG).
 //! - [`station`]: the run — plan, move, capture, detect, solve, judge, write.
 //! - [`exit`]: the process exit codes (an API).
 
@@ -35,6 +36,7 @@ pub mod capture;
 pub mod detect;
 pub mod exit;
 pub mod observations;
+pub mod report;
 pub mod rig;
 pub mod station;
 pub mod synthetic;

@@ -9,6 +9,7 @@ use cubecal::exit;
 mod capture;
 mod detect;
 mod render;
+mod report;
 mod rig;
 mod solve;
 mod turntable;
@@ -45,6 +46,8 @@ enum Command {
     /// Bring up, drive or simulate a serial turntable.
     #[command(subcommand)]
     Turntable(turntable::TurntableCommand),
+    /// Write the self-contained HTML report (plots, thumbnails) of a station run directory.
+    Report(report::ReportArgs),
 }
 
 /// Global output options every subcommand receives.
@@ -77,6 +80,7 @@ pub fn main() -> ExitCode {
         Command::Devices(args) => capture::run_devices(args, out),
         Command::Record(args) => capture::run_record(args, out),
         Command::Turntable(cmd) => turntable::run(cmd, out),
+        Command::Report(args) => report::run(args, out),
     };
     match result {
         Ok(code) => ExitCode::from(code),
@@ -128,6 +132,9 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::turntable::TurntableError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::report::ReportError>() {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<detect::DetectCliError>() {
