@@ -37,6 +37,56 @@ fn main() {
         println!("run {i}: {:.1} ms", dt * 1e3);
         times.push(dt);
     }
+    // Where the time goes (one more run, by stage, without writing).
+    let t = Instant::now();
+    let data = cubecal::report::RunData::load(&run).unwrap();
+    println!("stage load: {:.1} ms", t.elapsed().as_secs_f64() * 1e3);
+    let report = cubecal::report::render_run(&data, "report_plots").unwrap();
+    for (stage, d) in &report.timings {
+        println!("stage {stage}: {:.1} ms", d.as_secs_f64() * 1e3);
+    }
+    // One thumbnail, by step: frame decoding, detection (rejected frames only), drawing.
+    let frame = run.join("session/frame_000000.png");
+    let t = Instant::now();
+    let img = cubecal::report::thumbs::load_frame(&frame).unwrap();
+    println!(
+        "thumbnail step decode 1280×960 PNG: {:.1} ms",
+        t.elapsed().as_secs_f64() * 1e3
+    );
+    let t = Instant::now();
+    let det = cubecal::report::thumbs::detect_frame(&img, &data.rig).unwrap();
+    println!(
+        "thumbnail step detect (rejected frames only): {:.1} ms",
+        t.elapsed().as_secs_f64() * 1e3
+    );
+    let best = |f: &mut dyn FnMut()| {
+        (0..5)
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .fold(f64::MAX, f64::min)
+    };
+    let small = image::imageops::thumbnail(&img, 400, 300);
+    println!(
+        "(for comparison, not used: image::imageops::thumbnail to 400×300: {:.1} ms)",
+        best(&mut || {
+            let _ = image::imageops::thumbnail(&img, 400, 300);
+        })
+    );
+    println!(
+        "thumbnail step overlay: {:.1} ms",
+        best(&mut || {
+            let _ = cubecal::detect::overlay::draw(&small, &det, &data.rig);
+        })
+    );
+    println!(
+        "thumbnail step scale + overlay + legend: {:.1} ms",
+        best(&mut || {
+            let _ = cubecal::report::thumbs::thumbnail(&img, &det, &data.rig).unwrap();
+        })
+    );
     times.sort_by(f64::total_cmp);
     println!(
         "report generation, 12 poses: min {:.1} ms, median {:.1} ms (7 runs)",

@@ -133,18 +133,27 @@ pub struct RunReport {
     pub plots: Vec<Plot>,
     pub thumbs: Vec<Thumb>,
     pub coverage: CoverageGrid,
+    /// Time spent in each stage (for the benchmark and `-vv` logs).
+    pub timings: Vec<(&'static str, std::time::Duration)>,
 }
 
+/// PNG with fast compression: plots and thumbnails are flat colours and a downscaled frame, where
+/// stronger compression costs several times the time for a few per cent of size.
 fn encode_png(img: &image::RgbImage, what: &Path) -> Result<Vec<u8>, ReportError> {
+    use image::ImageEncoder as _;
+    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
     let mut bytes = Vec::new();
-    img.write_to(
-        &mut std::io::Cursor::new(&mut bytes),
-        image::ImageFormat::Png,
-    )
-    .map_err(|source| ReportError::Encode {
-        path: what.to_path_buf(),
-        source,
-    })?;
+    PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Adaptive)
+        .write_image(
+            img.as_raw(),
+            img.width(),
+            img.height(),
+            image::ExtendedColorType::Rgb8,
+        )
+        .map_err(|source| ReportError::Encode {
+            path: what.to_path_buf(),
+            source,
+        })?;
     Ok(bytes)
 }
 
@@ -183,6 +192,12 @@ pub fn esc(s: &str) -> String {
 
 /// Render the report of a loaded run. `png_dir` is the relative folder the PNG links point to.
 pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportError> {
+    let mut timings = Vec::new();
+    let mut clock = std::time::Instant::now();
+    let mut lap = |name: &'static str, timings: &mut Vec<(&'static str, std::time::Duration)>| {
+        timings.push((name, clock.elapsed()));
+        clock = std::time::Instant::now();
+    };
     let result = &data.result;
     let cal = &result.calibration;
     let cam = analysis::camera_from_report(cal).map_err(|source| ReportError::Camera {
@@ -194,6 +209,7 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
         analysis::residuals(&cam, &data.observations, cal, &result.held_out);
 
     // Coverage: every accepted corner (fitted and held out).
+    lap("residuals", &mut timings);
     let face_names: Vec<String> = data.rig.faces.iter().map(|f| f.name.clone()).collect();
     let points: Vec<((f64, f64), Option<usize>)> = data
         .observations
@@ -230,6 +246,7 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
         ),
     )?);
 
+    lap("coverage plot", &mut timings);
     let norms: Vec<f64> = residuals.iter().map(|r| r.r.norm()).collect();
     let (scale, bar_px) = ResidualFigure::choose_scale(image_size, &norms);
     let arrows = residuals
@@ -259,6 +276,7 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
         ),
     )?);
 
+    lap("residual plot", &mut timings);
     let sigma = if cal.sigma_px > 0.0 && cal.sigma_px.is_finite() {
         cal.sigma_px
     } else {
@@ -278,6 +296,7 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
             .to_string(),
     )?);
 
+    lap("histogram plot", &mut timings);
     let median = analysis::median_fitted_rms(&stats);
     plots.push(plot(
         &ViewRmsFigure {
@@ -291,6 +310,7 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
         ),
     )?);
 
+    lap("per-view plot", &mut timings);
     let displacement = analysis::displacement_field(&cam, 64, 48);
     plots.push(plot(
         &HeatmapFigure {
@@ -309,6 +329,7 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
             .to_string(),
     )?);
 
+    lap("distortion plot", &mut timings);
     let mut notes = Vec::new();
     if !no_pose.is_empty() {
         notes.push(format!(
@@ -344,13 +365,20 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
         Err(e) => notes.push(format!("No projection uncertainty plot: {e}.")),
     }
 
+    lap("uncertainty plot", &mut timings);
     let thumbs = thumbnails(data)?;
+    lap("thumbnails", &mut timings);
     let html = html(data, &plots, &thumbs, &stats, &grid, &notes, png_dir);
+    lap("html", &mut timings);
+    for (stage, t) in &timings {
+        tracing::debug!(stage, ms = t.as_secs_f64() * 1e3, "report stage");
+    }
     Ok(RunReport {
         html,
         plots,
         thumbs,
         coverage: grid,
+        timings,
     })
 }
 
@@ -385,8 +413,8 @@ fn thumbnails(data: &RunData) -> Result<Vec<Thumb>, ReportError> {
     } else {
         data.result.views.clone()
     };
-    let mut out = Vec::new();
-    for o in outcomes {
+    // One thumbnail per pose, on up to four threads (decoding, scaling and encoding dominate).
+    let one = |o: &ViewOutcome| -> Result<Thumb, ReportError> {
         let obs = obs_by_name.get(o.name.as_str()).copied();
         let frame = o
             .frame
@@ -425,15 +453,36 @@ fn thumbnails(data: &RunData) -> Result<Vec<Thumb>, ReportError> {
                 }
             }
         };
-        out.push(Thumb {
+        Ok(Thumb {
             held_out: held.contains(o.name.as_str()),
             angle_deg: frame.as_deref().and_then(|f| data.angle_deg(f)),
-            name: o.name,
+            name: o.name.clone(),
             frame,
             accepted: o.accepted,
-            reason: o.reason,
+            reason: o.reason.clone(),
             png,
-        });
+        })
+    };
+    let workers = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .clamp(1, 4);
+    let chunk = outcomes.len().div_ceil(workers).max(1);
+    let parts: Vec<Result<Vec<Thumb>, ReportError>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = outcomes
+            .chunks(chunk)
+            .map(|part| scope.spawn(|| part.iter().map(one).collect::<Result<Vec<_>, _>>()))
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| match h.join() {
+                Ok(r) => r,
+                Err(panic) => std::panic::resume_unwind(panic),
+            })
+            .collect()
+    });
+    let mut out = Vec::with_capacity(outcomes.len());
+    for p in parts {
+        out.extend(p?);
     }
     Ok(out)
 }
