@@ -7,7 +7,7 @@
 //! shows what the detector found and the reason says why it was not enough. The overlay is drawn
 //! on the downscaled frame with the corners mapped to it, so lines stay one pixel wide.
 //!
-//! Downscaling is a hand-written integer box filter ([`downscale`]; see its docs for why).
+//! Downscaling is a hand-written integer box filter ([`downscale`]; its docs say why).
 
 use std::path::Path;
 
@@ -158,10 +158,12 @@ pub fn thumbnail(
 }
 
 /// Average `k × k` blocks (a box filter with an integer factor; the last partial row and column
-/// are dropped). Written here rather than calling `image::imageops::thumbnail` because that generic
-/// version takes ~30 ms per 1280×960 frame against ~2 ms for this loop, and the report of a
-/// 12-pose run has a budget of 1 s. Output pixel `i` covers input pixels `k·i .. k·i + k`, so pixel
-/// centres map by `u' = (u + ½)/k − ½`.
+/// are dropped). Output pixel `i` covers input pixels `k·i .. k·i + k`, so pixel centres map by
+/// `u' = (u + ½)/k − ½`, the mapping the overlay's corners are moved by. Written here rather than
+/// calling `image::imageops::thumbnail` (any ratio) for that exact mapping and for speed outside
+/// release builds: per 1280×960 frame, measured by `cargo bench --bench report`, image's version
+/// takes 31 ms in the test profile (4.3 ms in release) against ~3 ms for this loop with the
+/// overlay and legend.
 pub fn downscale(img: &GrayImage, k: u32) -> GrayImage {
     let k = k.max(1);
     let (w, h) = img.dimensions();
