@@ -162,7 +162,7 @@ pub fn thumbnail(
 /// `u' = (u + ½)/k − ½`, the mapping the overlay's corners are moved by. Written here rather than
 /// calling `image::imageops::thumbnail` (any ratio) for that exact mapping and for speed outside
 /// release builds: per 1280×960 frame, measured by `cargo bench --bench report`, image's version
-/// takes 31 ms in the test profile (4.3 ms in release) against ~3 ms for this loop with the
+/// takes 31 ms in the test profile (4.3 ms in release) against 3–5 ms for this loop with the
 /// overlay and legend.
 pub fn downscale(img: &GrayImage, k: u32) -> GrayImage {
     let k = k.max(1);
