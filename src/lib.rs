@@ -27,6 +27,7 @@
 //! - [`observations`]: the correspondence file format read by `cubecal solve`.
 //! - [`turntable`]: the `Turntable` trait, serial drivers and simulators.
 //! - [`profile`]: per-device profiles — the crash-safe versioned store and the OpenCV/ROS/mrcal exports.
+//! - [`report`]: self-contained HTML run reports with plots (and the same plots as PNG).
 //! - [`station`]: the run — plan, move, capture, detect, solve, judge, write.
 //! - [`exit`]: the process exit codes (an API).
 
@@ -37,6 +38,7 @@ pub mod detect;
 pub mod exit;
 pub mod observations;
 pub mod profile;
+pub mod report;
 pub mod rig;
 pub mod station;
 pub mod synthetic;

@@ -11,6 +11,7 @@ mod capture;
 mod detect;
 mod profile;
 mod render;
+mod report;
 mod rig;
 mod solve;
 mod turntable;
@@ -53,6 +54,8 @@ enum Command {
     /// List, show, export, compare and roll back per-camera profiles in the profile store.
     #[command(subcommand)]
     Profile(profile::ProfileCommand),
+    /// Write the self-contained HTML report (plots, thumbnails) of a station run directory.
+    Report(report::ReportArgs),
 }
 
 /// Global output options every subcommand receives.
@@ -87,6 +90,7 @@ pub fn main() -> ExitCode {
         Command::Record(args) => capture::run_record(args, out),
         Command::Turntable(cmd) => turntable::run(cmd, out),
         Command::Profile(cmd) => profile::run(cmd, out),
+        Command::Report(args) => report::run(args, out),
     };
     match result {
         Ok(code) => ExitCode::from(code),
@@ -147,6 +151,9 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::capture::session::SessionError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::report::ReportError>() {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<detect::DetectCliError>() {

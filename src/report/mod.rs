@@ -1,0 +1,750 @@
+//! Run reports: one self-contained HTML file a calibration engineer can judge a run from by looking,
+//! plus the same plots as PNG files beside it.
+//!
+//! The report shows the verdict table and the device; the coverage of the image by accepted corners
+//! (coloured by face, on the coverage grid); the residuals as a magnified vector field and as a
+//! histogram against the estimated noise σ; the RMS of each view with the held-out view and outlier
+//! views marked; the lens distortion (displacement magnitude in bands, and a straight grid as the
+//! lens draws it); the projection uncertainty over the image from the intrinsics' covariance; and a
+//! thumbnail of every pose with its detection overlay and a legend of the faces in their colours.
+//!
+//! ## Design
+//! - [`analysis`] computes every number shown (pure functions, tested against ground truth);
+//!   [`plots`] draws them with `plotters` on any backend: inline SVG in the HTML (text rendered by the
+//!   browser, no JavaScript), a bitmap for the PNG files. Text in bitmaps is drawn with the DejaVu
+//!   Sans font embedded in the binary (`dejavu` crate, through plotters' `ab_glyph` feature), so no
+//!   system font library or installed font is needed on a bare Debian.
+//! - Thumbnails are PNG embedded as `data:` URIs, so the HTML needs nothing beside it to be read.
+//! - Residuals are recomputed from the calibrated camera, the view poses (fitted views from the
+//!   calibration, held-out views from `held_out`) and the observations.
+//! - Files are written atomically (temporary file, then rename).
+
+pub mod analysis;
+pub mod plots;
+pub mod run;
+pub mod thumbs;
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use base64::Engine as _;
+
+use analysis::{COVERAGE_GRID, CoverageGrid, OUTLIER_VIEW_FACTOR};
+use plots::{
+    CoverageFigure, Figure, Geometry, HeatmapFigure, HistogramFigure, PlotError, PointKind,
+    ResidualFigure, ViewRmsFigure,
+};
+pub use run::{HeldOutPose, RunData, RunResult, ViewOutcome};
+
+/// Errors making a report.
+#[derive(Debug, thiserror::Error)]
+pub enum ReportError {
+    #[error(
+        "{path} is not a run directory (a folder with result.json, observations.json, rig.toml; profile reports are not available yet)"
+    )]
+    NotARunDir { path: PathBuf },
+    #[error("cannot read {path}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: not in the expected format")]
+    Json {
+        path: PathBuf,
+        #[source]
+        source: serde_json::Error,
+    },
+    #[error("cannot load the run's rig")]
+    Rig(#[from] crate::rig::RigError),
+    #[error("{path}: {reason}")]
+    Invalid { path: PathBuf, reason: String },
+    #[error("the calibration in {path} is not a usable camera")]
+    Camera {
+        path: PathBuf,
+        #[source]
+        source: crate::camera::CameraError,
+    },
+    #[error("cannot draw the {plot} plot")]
+    Plot {
+        plot: &'static str,
+        #[source]
+        source: PlotError,
+    },
+    #[error("cannot encode {path} as PNG")]
+    Encode {
+        path: PathBuf,
+        #[source]
+        source: image::ImageError,
+    },
+    #[error("cannot write {path}")]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+impl ReportError {
+    /// The process exit code for this error (see [`crate::exit`]).
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            ReportError::NotARunDir { .. }
+            | ReportError::Read { .. }
+            | ReportError::Json { .. }
+            | ReportError::Invalid { .. }
+            | ReportError::Camera { .. } => crate::exit::BAD_INPUT,
+            ReportError::Rig(e) => e.exit_code(),
+            ReportError::Plot { .. } | ReportError::Encode { .. } | ReportError::Write { .. } => {
+                crate::exit::INTERNAL
+            }
+        }
+    }
+}
+
+/// One drawn plot: SVG for the HTML, PNG for the file beside it.
+#[derive(Debug, Clone)]
+pub struct Plot {
+    pub name: &'static str,
+    pub svg: String,
+    pub png: Vec<u8>,
+    pub geometry: Geometry,
+    /// What the plot shows and how to read it.
+    pub note: String,
+}
+
+/// A pose's thumbnail.
+#[derive(Debug, Clone)]
+pub struct Thumb {
+    pub name: String,
+    pub frame: Option<String>,
+    pub accepted: bool,
+    pub held_out: bool,
+    pub reason: Option<String>,
+    pub angle_deg: Option<f64>,
+    /// PNG bytes, or why there is no image.
+    pub png: Result<Vec<u8>, String>,
+}
+
+/// A rendered run report.
+#[derive(Debug, Clone)]
+pub struct RunReport {
+    pub html: String,
+    pub plots: Vec<Plot>,
+    pub thumbs: Vec<Thumb>,
+    pub coverage: CoverageGrid,
+    /// Time spent in each stage (for the benchmark and `-vv` logs).
+    pub timings: Vec<(&'static str, std::time::Duration)>,
+}
+
+/// PNG with fast compression: plots and thumbnails are flat colours and a downscaled frame, where
+/// stronger compression costs several times the time for a few per cent of size.
+fn encode_png(img: &image::RgbImage, what: &Path) -> Result<Vec<u8>, ReportError> {
+    use image::ImageEncoder as _;
+    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+    let mut bytes = Vec::new();
+    PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Adaptive)
+        .write_image(
+            img.as_raw(),
+            img.width(),
+            img.height(),
+            image::ExtendedColorType::Rgb8,
+        )
+        .map_err(|source| ReportError::Encode {
+            path: what.to_path_buf(),
+            source,
+        })?;
+    Ok(bytes)
+}
+
+fn plot(fig: &impl Figure, note: String) -> Result<Plot, ReportError> {
+    let err = |source| ReportError::Plot {
+        plot: fig.name(),
+        source,
+    };
+    let (svg, geometry) = plots::to_svg(fig).map_err(err)?;
+    let rgb = plots::to_rgb(fig).map_err(err)?;
+    let png = encode_png(&rgb, Path::new(fig.name()))?;
+    Ok(Plot {
+        name: fig.name(),
+        svg,
+        png,
+        geometry,
+        note,
+    })
+}
+
+/// Escape text for HTML.
+pub fn esc(s: &str) -> String {
+    let mut o = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '<' => o.push_str("&lt;"),
+            '>' => o.push_str("&gt;"),
+            '&' => o.push_str("&amp;"),
+            '"' => o.push_str("&quot;"),
+            '\'' => o.push_str("&#39;"),
+            c => o.push(c),
+        }
+    }
+    o
+}
+
+/// Render the report of a loaded run. `png_dir` is the relative folder the PNG links point to.
+pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportError> {
+    let mut timings = Vec::new();
+    let mut clock = std::time::Instant::now();
+    let mut lap = |name: &'static str, timings: &mut Vec<(&'static str, std::time::Duration)>| {
+        timings.push((name, clock.elapsed()));
+        clock = std::time::Instant::now();
+    };
+    let result = &data.result;
+    let cal = &result.calibration;
+    let cam = analysis::camera_from_report(cal).map_err(|source| ReportError::Camera {
+        path: data.dir.join(run::RESULT),
+        source,
+    })?;
+    let image_size = cal.image_size;
+    let (residuals, stats, no_pose) =
+        analysis::residuals(&cam, &data.observations, cal, &result.held_out);
+
+    // Coverage: every accepted corner (fitted and held out).
+    lap("residuals", &mut timings);
+    let face_names: Vec<String> = data.rig.faces.iter().map(|f| f.name.clone()).collect();
+    let points: Vec<((f64, f64), Option<usize>)> = data
+        .observations
+        .views
+        .iter()
+        .flat_map(|v| v.points.iter())
+        .map(|p| {
+            let face = p
+                .face
+                .as_deref()
+                .and_then(|n| face_names.iter().position(|f| f == n));
+            ((p.uv[0], p.uv[1]), face)
+        })
+        .collect();
+    let grid = CoverageGrid::count(
+        points
+            .iter()
+            .map(|&((u, v), _)| nalgebra::Vector2::new(u, v)),
+        image_size,
+        COVERAGE_GRID,
+    );
+    let mut plots = Vec::new();
+    plots.push(plot(
+        &CoverageFigure {
+            image_size,
+            points,
+            face_names: face_names.clone(),
+            grid: grid.clone(),
+        },
+        format!(
+            "Every accepted corner over the image, coloured by face, on the {}×{} coverage grid \
+             (green: cell holds corners).",
+            COVERAGE_GRID.0, COVERAGE_GRID.1
+        ),
+    )?);
+
+    lap("coverage plot", &mut timings);
+    let norms: Vec<f64> = residuals.iter().map(|r| r.r.norm()).collect();
+    let (scale, bar_px) = ResidualFigure::choose_scale(image_size, &norms);
+    let arrows = residuals
+        .iter()
+        .map(|r| {
+            let kind = if r.held_out {
+                PointKind::HeldOut
+            } else if r.outlier {
+                PointKind::Outlier
+            } else {
+                PointKind::Fitted
+            };
+            ((r.uv.x, r.uv.y), (r.r.x, r.r.y), kind)
+        })
+        .collect();
+    plots.push(plot(
+        &ResidualFigure {
+            image_size,
+            arrows,
+            scale,
+            bar_px,
+        },
+        format!(
+            "Residual of every corner drawn from the corner, magnified {scale}×; the bar is a \
+             {bar_px} px residual at that scale. A pattern (swirl, radial flow) means a model error; \
+             noise looks random."
+        ),
+    )?);
+
+    lap("residual plot", &mut timings);
+    let sigma = if cal.sigma_px > 0.0 && cal.sigma_px.is_finite() {
+        cal.sigma_px
+    } else {
+        1.0
+    };
+    let components = residuals
+        .iter()
+        .filter(|r| !r.held_out && !r.outlier)
+        .flat_map(|r| [r.r.x, r.r.y]);
+    plots.push(plot(
+        &HistogramFigure {
+            hist: analysis::histogram(components, sigma),
+            sigma_px: sigma,
+        },
+        "Residual components of the fitted inliers in bins of σ/4, with the normal density \
+         expected for corner noise σ (red). Heavy tails or a skew mean outliers or a model error."
+            .to_string(),
+    )?);
+
+    lap("histogram plot", &mut timings);
+    let median = analysis::median_fitted_rms(&stats);
+    plots.push(plot(
+        &ViewRmsFigure {
+            stats: stats.clone(),
+            sigma_px: cal.sigma_px,
+            outlier_above: median.map(|m| m * OUTLIER_VIEW_FACTOR),
+        },
+        format!(
+            "RMS of each view's residual components (outlier points excluded). Dashed: σ (grey) and \
+             {OUTLIER_VIEW_FACTOR}× the median fitted view (red): a view above it is an outlier view."
+        ),
+    )?);
+
+    lap("per-view plot", &mut timings);
+    let displacement = analysis::displacement_field(&cam, 64, 48);
+    plots.push(plot(
+        &HeatmapFigure {
+            name: "distortion",
+            caption: format!(
+                "Lens distortion ({}): displacement from the ideal pinhole image",
+                cal.distortion.model
+            ),
+            unit: "px".into(),
+            image_size,
+            field: displacement,
+            lines: analysis::distorted_grid(&cam, 10),
+        },
+        "Colour bands: how far the lens moves each pixel from where an ideal pinhole camera with \
+         the same K would image it. Black: a straight grid of the ideal image as this lens draws it."
+            .to_string(),
+    )?);
+
+    lap("distortion plot", &mut timings);
+    let mut notes = Vec::new();
+    if !no_pose.is_empty() {
+        notes.push(format!(
+            "{} observed view(s) have no pose in result.json and are not in the residual plots: {}",
+            no_pose.len(),
+            no_pose.join(", ")
+        ));
+    }
+    match analysis::full_covariance(cal) {
+        Ok(cov) => {
+            let d = analysis::working_distance_mm(cal).unwrap_or(1000.0);
+            let field = analysis::uncertainty_field(&cam, &cov, d, 32, 24);
+            plots.push(plot(
+                &HeatmapFigure {
+                    name: "uncertainty",
+                    caption: format!(
+                        "Projection uncertainty σ (px) at {d:.0} mm, from the intrinsics' covariance"
+                    ),
+                    unit: "σ px".into(),
+                    image_size,
+                    field,
+                    lines: Vec::new(),
+                },
+                format!(
+                    "1σ error of projecting a point at {d:.0} mm (the median camera–rig distance) \
+                     along each pixel's ray, from the covariance of the {} estimated intrinsics \
+                     (larger axis of the error ellipse). For intrinsics alone it is the same at \
+                     every distance along the ray; pose uncertainty is not included.",
+                    cal.free_params.len()
+                ),
+            )?);
+        }
+        Err(e) => notes.push(format!("No projection uncertainty plot: {e}.")),
+    }
+
+    lap("uncertainty plot", &mut timings);
+    let thumbs = thumbnails(data)?;
+    lap("thumbnails", &mut timings);
+    let html = html(data, &plots, &thumbs, &stats, &grid, &notes, png_dir);
+    lap("html", &mut timings);
+    for (stage, t) in &timings {
+        tracing::debug!(stage, ms = t.as_secs_f64() * 1e3, "report stage");
+    }
+    Ok(RunReport {
+        html,
+        plots,
+        thumbs,
+        coverage: grid,
+        timings,
+    })
+}
+
+fn thumbnails(data: &RunData) -> Result<Vec<Thumb>, ReportError> {
+    let obs_by_name: std::collections::HashMap<&str, &crate::observations::RawView> = data
+        .observations
+        .views
+        .iter()
+        .filter_map(|v| Some((v.name.as_deref()?, v)))
+        .collect();
+    let held: std::collections::HashSet<&str> = data
+        .observations
+        .views
+        .iter()
+        .filter(|v| v.held_out)
+        .filter_map(|v| v.name.as_deref())
+        .chain(data.result.held_out.iter().map(|h| h.name.as_str()))
+        .collect();
+    // Views listed in result.json, else the observed views.
+    let outcomes: Vec<ViewOutcome> = if data.result.views.is_empty() {
+        data.observations
+            .views
+            .iter()
+            .enumerate()
+            .map(|(i, v)| ViewOutcome {
+                name: v.name.clone().unwrap_or_else(|| format!("view{i}")),
+                frame: v.frame.clone(),
+                accepted: true,
+                reason: None,
+            })
+            .collect()
+    } else {
+        data.result.views.clone()
+    };
+    // One thumbnail per pose, on up to four threads (decoding, scaling and encoding dominate).
+    let one = |o: &ViewOutcome| -> Result<Thumb, ReportError> {
+        let obs = obs_by_name.get(o.name.as_str()).copied();
+        let frame = o
+            .frame
+            .clone()
+            .or_else(|| obs.and_then(|v| v.frame.clone()));
+        let png = match &frame {
+            None => Err("no frame recorded for this view".to_string()),
+            Some(f) => {
+                let path = data.dir.join(run::SESSION).join(f);
+                match thumbs::load_frame(&path) {
+                    Err(e) => Err(format!("frame {f} cannot be read: {e}")),
+                    Ok(img) => {
+                        let det = match obs {
+                            Some(v) => Some(thumbs::detection_from_view(
+                                v,
+                                &data.rig,
+                                img.width(),
+                                img.height(),
+                            )),
+                            None => thumbs::detect_frame(&img, &data.rig),
+                        };
+                        let det = det.unwrap_or(crate::detect::FrameDetection {
+                            width: img.width(),
+                            height: img.height(),
+                            faces: Vec::new(),
+                            rejected: Vec::new(),
+                        });
+                        let rgb = thumbs::thumbnail(&img, &det, &data.rig).map_err(|source| {
+                            ReportError::Plot {
+                                plot: "thumbnail",
+                                source,
+                            }
+                        })?;
+                        Ok(encode_png(&rgb, &path)?)
+                    }
+                }
+            }
+        };
+        Ok(Thumb {
+            held_out: held.contains(o.name.as_str()),
+            angle_deg: frame.as_deref().and_then(|f| data.angle_deg(f)),
+            name: o.name.clone(),
+            frame,
+            accepted: o.accepted,
+            reason: o.reason.clone(),
+            png,
+        })
+    };
+    let workers = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .clamp(1, 4);
+    let chunk = outcomes.len().div_ceil(workers).max(1);
+    let parts: Vec<Result<Vec<Thumb>, ReportError>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = outcomes
+            .chunks(chunk)
+            .map(|part| scope.spawn(|| part.iter().map(one).collect::<Result<Vec<_>, _>>()))
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| match h.join() {
+                Ok(r) => r,
+                Err(panic) => std::panic::resume_unwind(panic),
+            })
+            .collect()
+    });
+    let mut out = Vec::with_capacity(outcomes.len());
+    for p in parts {
+        out.extend(p?);
+    }
+    Ok(out)
+}
+
+const CSS: &str = "body{font-family:sans-serif;margin:24px;color:#222;max-width:1500px}\
+h1{margin-bottom:4px}h2{margin-top:32px;border-bottom:1px solid #ccc}\
+table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}\
+td.num{text-align:right;font-variant-numeric:tabular-nums}\
+.pass{color:#1a7f37;font-weight:bold}.fail{color:#c62828;font-weight:bold}\
+.banner{display:inline-block;padding:6px 16px;font-size:22px;color:#fff;border-radius:4px}\
+.banner.pass{background:#1a7f37;color:#fff}.banner.fail{background:#c62828;color:#fff}\
+figure{display:inline-block;vertical-align:top;margin:8px 16px 16px 0;max-width:860px}\
+figure svg{max-width:100%;height:auto;border:1px solid #eee}\
+figcaption{font-size:13px;color:#444;max-width:820px}\
+.thumbs{display:flex;flex-wrap:wrap;gap:12px}.thumb{width:400px;font-size:13px}\
+.thumb img{width:400px;border:1px solid #ccc}.note{color:#8a5a00}";
+
+fn fmt_num(x: f64) -> String {
+    if !x.is_finite() {
+        format!("{x}")
+    } else if x != 0.0 && (x.abs() < 1e-3 || x.abs() >= 1e6) {
+        format!("{x:.3e}")
+    } else {
+        format!("{x:.4}")
+    }
+}
+
+fn html(
+    data: &RunData,
+    plots: &[Plot],
+    thumbs: &[Thumb],
+    stats: &[analysis::ViewStat],
+    grid: &CoverageGrid,
+    notes: &[String],
+    png_dir: &str,
+) -> String {
+    let r = &data.result;
+    let cal = &r.calibration;
+    let mut h = String::new();
+    let pass = if r.verdict.pass { "pass" } else { "fail" };
+    let _ = write!(
+        h,
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
+         <title>cubecal run report</title><style>{CSS}</style></head><body>\n\
+         <h1>cubecal run report</h1>\n<p>Run directory <code>{}</code>; rig <b>{}</b>.</p>\n\
+         <div class=\"banner {pass}\">{}</div>\n",
+        esc(&data.dir.display().to_string()),
+        esc(&data.rig.name),
+        if r.verdict.pass {
+            "PASS: calibration accepted"
+        } else {
+            "FAIL: calibration rejected"
+        }
+    );
+    // Device.
+    h.push_str("<h2>Device</h2>\n<table>");
+    match &r.device {
+        serde_json::Value::Object(m) if !m.is_empty() => {
+            for (k, v) in m {
+                let v = match v {
+                    serde_json::Value::String(s) => s.clone(),
+                    other => other.to_string(),
+                };
+                let _ = write!(h, "<tr><th>{}</th><td>{}</td></tr>", esc(k), esc(&v));
+            }
+        }
+        _ => h.push_str("<tr><td>no device recorded (replayed or synthetic run)</td></tr>"),
+    }
+    h.push_str("</table>\n");
+    // Verdict.
+    h.push_str(
+        "<h2>Verdict</h2>\n<table><tr><th>check</th><th>value</th><th>threshold</th>\
+         <th>result</th><th>what to do</th></tr>\n",
+    );
+    for c in &r.verdict.checks {
+        let (cls, word) = if c.pass {
+            ("pass", "pass")
+        } else {
+            ("fail", "FAIL")
+        };
+        let _ = writeln!(
+            h,
+            "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td>\
+             <td class=\"{cls}\">{word}</td><td>{}</td></tr>",
+            esc(&c.name),
+            fmt_num(c.value),
+            fmt_num(c.threshold),
+            esc(c.hint.as_deref().unwrap_or(""))
+        );
+    }
+    h.push_str("</table>\n");
+    // Calibration.
+    let k = cal.camera_matrix;
+    let sd = |n: &str| {
+        cal.std_dev
+            .get(n)
+            .map_or(String::from("fixed"), |s| format!("± {}", fmt_num(*s)))
+    };
+    h.push_str("<h2>Calibration</h2>\n<table><tr><th>parameter</th><th>value</th><th>σ</th></tr>");
+    let mut row = |n: &str, v: f64, s: String| {
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
+            esc(n),
+            fmt_num(v),
+            s
+        );
+    };
+    for (n, v) in [
+        ("fx", k[0][0]),
+        ("fy", k[1][1]),
+        ("cx", k[0][2]),
+        ("cy", k[1][2]),
+        ("skew", k[0][1]),
+    ] {
+        row(n, v, sd(n));
+    }
+    for (n, v) in ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"]
+        .iter()
+        .zip(&cal.distortion.coefficients)
+    {
+        row(n, *v, sd(n));
+    }
+    let _ = write!(
+        h,
+        "</table>\n<p>Model {}; {} points in {} fitted views; RMS {} px (OpenCV's figure {} px); \
+         noise σ {} px; coverage {} of {} cells; {} ({} iterations).</p>\n",
+        esc(&cal.distortion.model),
+        cal.n_points,
+        cal.views.len(),
+        fmt_num(cal.rms_px),
+        fmt_num(cal.rms_reprojection_px),
+        fmt_num(cal.sigma_px),
+        grid.covered(),
+        grid.counts.len(),
+        esc(&cal.termination),
+        cal.iterations
+    );
+    if !r.held_out.is_empty() {
+        h.push_str("<table><tr><th>held-out view</th><th>RMS (px)</th></tr>");
+        for ho in &r.held_out {
+            let _ = write!(
+                h,
+                "<tr><td>{}</td><td class=\"num\">{}</td></tr>",
+                esc(&ho.name),
+                fmt_num(ho.rms_px)
+            );
+        }
+        h.push_str("</table>\n");
+    }
+    for n in notes {
+        let _ = writeln!(h, "<p class=\"note\">{}</p>", esc(n));
+    }
+    // Plots.
+    h.push_str("<h2>Plots</h2>\n");
+    for p in plots {
+        // plotters writes a standalone SVG document; inline it as an element of the page.
+        let svg = p
+            .svg
+            .trim_start_matches("<?xml version=\"1.0\" encoding=\"UTF-8\"?>");
+        let _ = writeln!(
+            h,
+            "<figure id=\"{name}\">{svg}<figcaption>{} <a href=\"{}/{name}.png\">PNG</a></figcaption></figure>",
+            esc(&p.note),
+            esc(png_dir),
+            name = p.name,
+        );
+    }
+    // Views.
+    h.push_str(
+        "<h2>Poses</h2>\n<table><tr><th>view</th><th>frame</th><th>angle (°)</th><th>status</th>\
+         <th>RMS (px)</th><th>points</th><th>reason</th></tr>\n",
+    );
+    for t in thumbs {
+        let st = stats.iter().find(|s| s.name == t.name);
+        let status = if !t.accepted {
+            "<span class=\"fail\">rejected</span>"
+        } else if t.held_out {
+            "held out"
+        } else {
+            "fitted"
+        };
+        let _ = writeln!(
+            h,
+            "<tr><td>{}</td><td>{}</td><td class=\"num\">{}</td><td>{status}</td>\
+             <td class=\"num\">{}</td><td class=\"num\">{}</td><td>{}</td></tr>",
+            esc(&t.name),
+            esc(t.frame.as_deref().unwrap_or("")),
+            t.angle_deg.map_or(String::new(), |a| format!("{a:.1}")),
+            st.map_or(String::new(), |s| fmt_num(s.rms_px)),
+            st.map_or(String::new(), |s| s.n_points.to_string()),
+            esc(t.reason.as_deref().unwrap_or(""))
+        );
+    }
+    h.push_str("</table>\n<div class=\"thumbs\">\n");
+    for t in thumbs {
+        let _ = write!(h, "<div class=\"thumb\">");
+        match &t.png {
+            Ok(png) => {
+                let _ = write!(
+                    h,
+                    "<img alt=\"{} with detection overlay\" src=\"data:image/png;base64,{}\">",
+                    esc(&t.name),
+                    base64::engine::general_purpose::STANDARD.encode(png)
+                );
+            }
+            Err(why) => {
+                let _ = write!(h, "<p class=\"note\">{}</p>", esc(why));
+            }
+        }
+        let _ = writeln!(
+            h,
+            "<div><b>{}</b> {}</div></div>",
+            esc(&t.name),
+            if !t.accepted {
+                format!("rejected: {}", esc(t.reason.as_deref().unwrap_or("")))
+            } else if t.held_out {
+                "held out".to_string()
+            } else {
+                String::new()
+            }
+        );
+    }
+    h.push_str("</div>\n</body></html>\n");
+    h
+}
+
+fn write_file(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
+    crate::rig::svg::write_atomic(path, bytes).map_err(|source| ReportError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Write the report of `run_dir` to `out` (HTML) and its plots as PNG into `<out stem>_plots/`
+/// beside it. Returns the HTML path.
+pub fn write_report(run_dir: &Path, out: &Path) -> Result<PathBuf, ReportError> {
+    let data = RunData::load(run_dir)?;
+    let stem = out.file_stem().map_or_else(
+        || "report".to_string(),
+        |s| s.to_string_lossy().into_owned(),
+    );
+    let png_dir_name = format!("{stem}_plots");
+    let report = render_run(&data, &png_dir_name)?;
+    let parent = out
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let png_dir = parent.join(&png_dir_name);
+    std::fs::create_dir_all(&png_dir).map_err(|source| ReportError::Write {
+        path: png_dir.clone(),
+        source,
+    })?;
+    for p in &report.plots {
+        write_file(&png_dir.join(format!("{}.png", p.name)), &p.png)?;
+    }
+    write_file(out, report.html.as_bytes())?;
+    tracing::info!(path = %out.display(), plots = report.plots.len(), thumbnails = report.thumbs.len(), "wrote run report");
+    Ok(out.to_path_buf())
+}
+
+/// Write `RUN_DIR/report.html` and `RUN_DIR/report_plots/*.png` (the station's entry point).
+pub fn write_run_report(run_dir: &Path) -> Result<PathBuf, ReportError> {
+    write_report(run_dir, &run_dir.join("report.html"))
+}
