@@ -3,6 +3,7 @@
 //! types are the interface the CLI, the service, the profile store and the report build on.
 
 pub mod event;
+pub mod notify;
 pub mod verdict;
 
 pub use event::{Event, EventSink};
