@@ -13,6 +13,7 @@ use serde::Serialize;
 pub mod init;
 pub mod linear;
 mod lm;
+pub mod pose;
 pub mod report;
 
 pub use lm::{Calibration, Fix, Loss, SolveOptions, Termination, ViewResult, solve, solve_from};
