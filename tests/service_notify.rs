@@ -12,6 +12,7 @@
 #![allow(clippy::print_stderr)]
 
 use std::os::unix::net::UnixDatagram;
+use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::thread;
@@ -36,42 +37,63 @@ struct Message {
     lines: Vec<String>,
 }
 
+impl Message {
+    fn has(&self, line: &str) -> bool {
+        self.lines.iter().any(|l| l == line)
+    }
+    fn status(&self) -> Option<&str> {
+        self.lines.iter().find_map(|l| l.strip_prefix("STATUS="))
+    }
+}
+
+/// A bound notify socket; a thread forwards every datagram, with its arrival time, to `rx`.
+struct Listener {
+    _dir: tempfile::TempDir,
+    path: PathBuf,
+    rx: mpsc::Receiver<Message>,
+}
+
+impl Listener {
+    fn new() -> Listener {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("notify");
+        let socket = UnixDatagram::bind(&path).unwrap();
+        let (tx, rx) = mpsc::channel();
+        thread::spawn(move || {
+            let mut buf = vec![0u8; 64 * 1024];
+            loop {
+                let n = socket.recv(&mut buf).expect("recv on the notify socket");
+                let text = String::from_utf8(buf[..n].to_vec()).unwrap();
+                let message = Message {
+                    at: Instant::now(),
+                    lines: text.lines().map(str::to_string).collect(),
+                };
+                if tx.send(message).is_err() {
+                    return;
+                }
+            }
+        });
+        Listener {
+            _dir: dir,
+            path,
+            rx,
+        }
+    }
+
+    /// Every message that arrived so far, waiting `settle` for late ones.
+    fn drain(&self, settle: Duration) -> Vec<Message> {
+        let mut out = Vec::new();
+        while let Ok(m) = self.rx.recv_timeout(settle) {
+            out.push(m);
+        }
+        out
+    }
+}
+
 /// Run the `child` test of this binary with `scenario`, the notify socket and the watchdog variable;
 /// return every datagram it sent and the child's run time.
 fn run_child(scenario: &str, watchdog_usec: Option<u64>) -> (Vec<Message>, Duration) {
-    let dir = tempfile::tempdir().unwrap();
-    let socket_path = dir.path().join("notify");
-    let socket = UnixDatagram::bind(&socket_path).unwrap();
-    socket
-        .set_read_timeout(Some(Duration::from_millis(50)))
-        .unwrap();
-
-    let (done_tx, done_rx) = mpsc::channel::<()>();
-    let reader = thread::spawn(move || {
-        let mut messages = Vec::new();
-        let mut buf = vec![0u8; 64 * 1024];
-        loop {
-            match socket.recv(&mut buf) {
-                Ok(n) => {
-                    let text = String::from_utf8(buf[..n].to_vec()).unwrap();
-                    messages.push(Message {
-                        at: Instant::now(),
-                        lines: text.lines().map(str::to_string).collect(),
-                    });
-                }
-                Err(e)
-                    if e.kind() == std::io::ErrorKind::WouldBlock
-                        || e.kind() == std::io::ErrorKind::TimedOut =>
-                {
-                    if done_rx.try_recv().is_ok() {
-                        return messages;
-                    }
-                }
-                Err(e) => panic!("recv on the notify socket: {e}"),
-            }
-        }
-    });
-
+    let listener = Listener::new();
     let start = Instant::now();
     let mut cmd = Command::new(std::env::current_exe().unwrap());
     cmd.args([
@@ -82,7 +104,7 @@ fn run_child(scenario: &str, watchdog_usec: Option<u64>) -> (Vec<Message>, Durat
         "--test-threads=1",
     ])
     .env(SCENARIO, scenario)
-    .env("NOTIFY_SOCKET", &socket_path)
+    .env("NOTIFY_SOCKET", &listener.path)
     .env_remove("WATCHDOG_USEC")
     .env_remove("WATCHDOG_PID")
     .stdout(Stdio::piped())
@@ -98,11 +120,8 @@ fn run_child(scenario: &str, watchdog_usec: Option<u64>) -> (Vec<Message>, Durat
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
-    // The datagrams are queued in the socket before the child exits; let the reader drain them.
-    thread::sleep(Duration::from_millis(200));
-    done_tx.send(()).unwrap();
-    let messages = reader.join().unwrap();
-    (messages, elapsed)
+    // The datagrams are queued in the socket before the child exits.
+    (listener.drain(Duration::from_millis(300)), elapsed)
 }
 
 /// The scripted run: two poses (one rejected), coverage, solve and a failing verdict.
@@ -251,17 +270,17 @@ fn watchdog_pings_follow_events_at_most_half_the_interval_apart_and_stop_with_th
     let watchdog = Duration::from_micros(WATCHDOG_USEC);
     let pings: Vec<Instant> = messages
         .iter()
-        .filter(|m| m.lines.iter().any(|l| l == "WATCHDOG=1"))
+        .filter(|m| m.has("WATCHDOG=1"))
         .map(|m| m.at)
         .collect();
     let quiet_at = messages
         .iter()
-        .find(|m| m.lines.iter().any(|l| l == "STATUS=quiet"))
+        .find(|m| m.has("STATUS=quiet"))
         .expect("the quiet marker")
         .at;
     let stopping_at = messages
         .iter()
-        .find(|m| m.lines.iter().any(|l| l == "STOPPING=1"))
+        .find(|m| m.has("STOPPING=1"))
         .expect("STOPPING=1")
         .at;
     assert!(
@@ -308,4 +327,139 @@ fn watchdog_pings_follow_events_at_most_half_the_interval_apart_and_stop_with_th
         "the silence lasted {:?}",
         stopping_at - quiet_at
     );
+}
+
+/// Every file under `dir` with its bytes (sorted by path).
+fn tree(dir: &std::path::Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for entry in std::fs::read_dir(&d).unwrap() {
+            let p = entry.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                let bytes = std::fs::read(&p).unwrap();
+                out.push((p, bytes));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// The real `cubecal serve` (synthetic camera in front of the GRBL simulator on a pty), stopped by
+/// SIGTERM mid-run as systemd stops a unit: READY=1 came first, watchdog pings came from the run,
+/// STOPPING=1 comes at once, the process exits with 130 within 5 s, the session is closed and marked
+/// incomplete, no profile is written and the profile store is left byte-identical.
+#[test]
+fn sigterm_mid_run_stops_within_5_s_without_touching_profiles() {
+    let listener = Listener::new();
+    let dir = tempfile::tempdir().unwrap();
+    let run_dir = dir.path().join("run");
+    let store = dir.path().join("store");
+    // A previous profile of this camera (whatever the store's layout: every byte must stay).
+    std::fs::create_dir_all(store.join("demo-camera")).unwrap();
+    std::fs::write(
+        store.join("demo-camera").join("profile.json"),
+        br#"{"previous": true, "fx": 1100.25}"#,
+    )
+    .unwrap();
+    let before = tree(&store);
+    let config = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/station.toml");
+    let quoted = |p: &std::path::Path| format!("\"{}\"", p.display());
+    let mut child = Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args(["serve", "--device", "/dev/null", "--config", config])
+        .args(["--set", "camera.source=\"synthetic\""])
+        .args(["--set", "camera.device_id=\"demo-camera\""])
+        .arg("--set")
+        .arg(format!("output.out={}", quoted(&run_dir)))
+        .arg("--set")
+        .arg(format!("output.store={}", quoted(&store)))
+        .env("NOTIFY_SOCKET", &listener.path)
+        .env("WATCHDOG_USEC", "2000000")
+        .env_remove("WATCHDOG_PID")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+
+    // Wait for the third pose to be under way (READY=1 long before), then SIGTERM.
+    let mut seen = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        let m = listener
+            .rx
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+            .expect("serve reached pose 3 within 120 s");
+        let third = m.status().is_some_and(|s| s.starts_with("pose 3/"));
+        seen.push(m);
+        if third {
+            break;
+        }
+    }
+    let term_at = Instant::now();
+    let kill = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            term_at.elapsed() < Duration::from_secs(10),
+            "serve still running 10 s after SIGTERM"
+        );
+        thread::sleep(Duration::from_millis(20));
+    };
+    let exit_after = term_at.elapsed();
+    let out = child.wait_with_output().unwrap();
+    let after: Vec<Message> = listener.drain(Duration::from_millis(300));
+    let stopping = after
+        .iter()
+        .find(|m| m.has("STOPPING=1"))
+        .expect("STOPPING=1 after SIGTERM");
+    eprintln!(
+        "STOPPING=1 {:?} after SIGTERM, exit {:?} after SIGTERM with {status}",
+        stopping.at - term_at,
+        exit_after
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        status.code(),
+        Some(130),
+        "exit code 130 (interrupted); stderr: {stderr}"
+    );
+    assert!(
+        exit_after <= Duration::from_secs(5),
+        "exited {exit_after:?} after SIGTERM"
+    );
+    assert!(stopping.at - term_at < Duration::from_secs(1));
+    let ready = seen.iter().position(|m| m.has("READY=1")).expect("READY=1");
+    let first_pose = seen
+        .iter()
+        .position(|m| m.status().is_some_and(|s| s.starts_with("pose ")))
+        .unwrap();
+    assert!(ready < first_pose, "READY=1 before the first pose");
+    assert!(
+        seen.iter().any(|m| m.has("WATCHDOG=1")),
+        "watchdog pings during the run"
+    );
+    // No profile, the session closed and marked incomplete, the store untouched.
+    assert!(!run_dir.join("profile.json").exists());
+    let manifest: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(run_dir.join("session").join("manifest.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(manifest["config"]["complete"], serde_json::json!(false));
+    assert!(
+        manifest["config"]["ended_by"]
+            .as_str()
+            .is_some_and(|s| s.contains("interrupted")),
+        "{}",
+        manifest["config"]
+    );
+    assert_eq!(tree(&store), before, "the profile store changed");
 }

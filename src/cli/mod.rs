@@ -11,6 +11,7 @@ mod capture;
 mod detect;
 mod render;
 mod rig;
+mod serve;
 mod solve;
 mod turntable;
 
@@ -49,6 +50,9 @@ enum Command {
     /// Bring up, drive or simulate a serial turntable.
     #[command(subcommand)]
     Turntable(turntable::TurntableCommand),
+    /// Run the station as a systemd service on one camera (what cubecal@.service runs): one
+    /// calibration with READY/STATUS/watchdog notifications, SIGTERM stops it cleanly.
+    Serve(serve::ServeArgs),
 }
 
 /// Global output options every subcommand receives.
@@ -82,6 +86,7 @@ pub fn main() -> ExitCode {
         Command::Devices(args) => capture::run_devices(args, out),
         Command::Record(args) => capture::run_record(args, out),
         Command::Turntable(cmd) => turntable::run(cmd, out),
+        Command::Serve(args) => serve::run(args, out),
     };
     match result {
         Ok(code) => ExitCode::from(code),

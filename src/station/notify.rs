@@ -120,12 +120,18 @@ impl SystemdNotifier {
 
     /// Tell systemd the service is shutting down (`STOPPING=1`), with the reason as its status.
     pub fn stopping(&mut self, reason: &str) {
-        let line = format!("stopping: {}", one_line(reason));
+        let line = stopping_line(reason);
         self.send(&[NotifyState::Stopping, NotifyState::Status(&line)]);
     }
 
-    /// [`EventSink::event`] at a given time (the pacing's clock), for tests of the pacing.
-    pub fn event_at(&mut self, event: &Event, now: Instant) {
+    /// Notify systemd of an event (as [`EventSink::event`]) and return the `STATUS=` text sent, so a
+    /// front-end can print the same line.
+    pub fn notify_event(&mut self, event: &Event) -> Option<String> {
+        self.event_at(event, Instant::now())
+    }
+
+    /// [`SystemdNotifier::notify_event`] at a given time (the pacing's clock), for tests of the pacing.
+    pub fn event_at(&mut self, event: &Event, now: Instant) -> Option<String> {
         let status = self.status_line(event);
         let ping = match self.watchdog.as_mut() {
             Some(pacer) => pacer.due(now),
@@ -144,6 +150,7 @@ impl SystemdNotifier {
         if !states.is_empty() {
             self.send(&states);
         }
+        status
     }
 
     /// The `STATUS=` text for an event (`None` for [`Event::Alive`]). Remembers the number of planned
@@ -244,8 +251,21 @@ impl SystemdNotifier {
 
 impl EventSink for SystemdNotifier {
     fn event(&mut self, event: &Event) {
-        self.event_at(event, Instant::now());
+        self.notify_event(event);
     }
+}
+
+/// Send `STOPPING=1` with the reason as status, from anywhere (a signal-handling thread, while the
+/// station loop owns the [`SystemdNotifier`]). A failure is logged, not returned: stopping goes on.
+pub fn notify_stopping(reason: &str) {
+    let line = stopping_line(reason);
+    if let Err(error) = sd_notify::notify(&[NotifyState::Stopping, NotifyState::Status(&line)]) {
+        tracing::warn!(%error, "cannot tell the service manager that we are stopping");
+    }
+}
+
+fn stopping_line(reason: &str) -> String {
+    format!("stopping: {}", one_line(reason))
 }
 
 /// `verdict PASS: rms_px=0.1234 (limit 0.5), …` or `verdict FAIL: coverage=0.34 (limit 0.6) — hint; …`
