@@ -13,6 +13,7 @@ mod profile;
 mod render;
 mod report;
 mod rig;
+mod serve;
 mod solve;
 mod turntable;
 
@@ -56,6 +57,9 @@ enum Command {
     Profile(profile::ProfileCommand),
     /// Write the self-contained HTML report (plots, thumbnails) of a station run directory.
     Report(report::ReportArgs),
+    /// Run the station as a systemd service on one camera (what cubecal@.service runs): one
+    /// calibration with READY/STATUS/watchdog notifications, SIGTERM stops it cleanly.
+    Serve(serve::ServeArgs),
 }
 
 /// Global output options every subcommand receives.
@@ -91,6 +95,7 @@ pub fn main() -> ExitCode {
         Command::Turntable(cmd) => turntable::run(cmd, out),
         Command::Profile(cmd) => profile::run(cmd, out),
         Command::Report(args) => report::run(args, out),
+        Command::Serve(args) => serve::run(args, out),
     };
     match result {
         Ok(code) => ExitCode::from(code),

@@ -34,6 +34,7 @@ pub mod coverage;
 pub mod event;
 pub mod hardware;
 pub mod judge;
+pub mod notify;
 pub mod sharpness;
 pub mod verdict;
 

@@ -1,0 +1,169 @@
+//! `cubecal serve`: the station as a systemd service (deploy/systemd/cubecal@.service, started by udev
+//! when a camera appears). One calibration run on `--device` with the station config, like
+//! `cubecal calibrate --config … --device …`, with its events rendered for the service manager by
+//! [`SystemdNotifier`] (`READY=1`, `STATUS=`, watchdog pings from the station loop) and as one line per
+//! event on stdout for the journal.
+//!
+//! SIGTERM (systemd stopping the unit, the camera unplugged) or SIGINT: a thread sends `STOPPING=1` at
+//! once and sets the station's stop flag; the station stops the turntable, closes the session marked
+//! incomplete and writes no profile, and `serve` exits with 130 (the unit lists it in
+//! `SuccessExitStatus=`, so a requested stop is not a failure).
+//!
+//! Relative paths of the config (run directory, profile store) are relative to the working directory:
+//! `/var/lib/cubecal` under the unit (`WorkingDirectory=`, the unit's `StateDirectory=`).
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::Context;
+use cubecal::rig::Rig;
+use cubecal::station::notify::{SystemdNotifier, notify_stopping};
+use cubecal::station::{self, Event, EventSink, RunSpec};
+use signal_hook::consts::{SIGINT, SIGTERM};
+
+use super::Output;
+use super::calibrate::{CalibrateArgs, build_config};
+
+#[derive(Debug, clap::Args)]
+pub struct ServeArgs {
+    /// The camera: a V4L2 capture device (the unit passes /dev/%I).
+    #[arg(long)]
+    pub device: PathBuf,
+    /// Station config (TOML; see fixtures/station.toml).
+    #[arg(long, default_value = "/etc/cubecal/station.toml")]
+    pub config: PathBuf,
+    /// Set any config key: --set qa.max_rms_px=0.2 (repeatable; applied after the config and --device).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+}
+
+/// The service's sink: systemd notifications, and the same status text (or JSON lines) on stdout.
+struct ServiceSink {
+    notifier: SystemdNotifier,
+    json: bool,
+}
+
+impl EventSink for ServiceSink {
+    fn event(&mut self, event: &Event) {
+        let status = self.notifier.notify_event(event);
+        let line = if self.json {
+            (!matches!(event, Event::Alive))
+                .then(|| serde_json::to_string(event).ok())
+                .flatten()
+        } else {
+            status
+        };
+        if let Some(line) = line {
+            let mut out = std::io::stdout().lock();
+            let _ = writeln!(out, "{line}");
+        }
+    }
+}
+
+pub fn run(args: ServeArgs, out: Output) -> anyhow::Result<u8> {
+    let stop = Arc::new(AtomicBool::new(false));
+    watch_signals(Arc::clone(&stop)).context("installing the SIGTERM/SIGINT handler")?;
+    let mut sink = ServiceSink {
+        notifier: SystemdNotifier::from_env(),
+        json: out.json,
+    };
+    sink.notifier
+        .status(&format!("opening {}", args.device.display()));
+    let result = serve(&args, &mut sink, &stop);
+    match &result {
+        Ok(code) => tracing::info!(code, "station run finished"),
+        Err(e) => {
+            // The error itself is printed by the CLI; systemctl status shows it too.
+            let text = e
+                .chain()
+                .map(|c| c.to_string())
+                .collect::<Vec<_>>()
+                .join(": ");
+            sink.notifier.status(&format!("error: {text}"));
+        }
+    }
+    result
+}
+
+fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow::Result<u8> {
+    let calibrate = CalibrateArgs {
+        config: Some(args.config.clone()),
+        device: Some(args.device.clone()),
+        replay: None,
+        images: Vec::new(),
+        synthetic: false,
+        turntable: None,
+        rig: None,
+        store: None,
+        out: None,
+        poses: None,
+        sweep_deg: None,
+        device_id: None,
+        set: args.set.clone(),
+    };
+    let (cfg, rig_toml, rig_path) = build_config(&calibrate)?;
+    let origin = rig_path
+        .as_ref()
+        .map(|p| p.display().to_string())
+        .unwrap_or_else(|| "the bundled rig".into());
+    let (rig, warnings) = Rig::from_toml_str(&rig_toml, &origin)?;
+    for w in &warnings {
+        tracing::warn!("{w}");
+    }
+    let run_dir = cfg
+        .output
+        .out
+        .clone()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or_else(|| {
+            PathBuf::from("cubecal-runs").join(station::utc_stamp(std::time::SystemTime::now()))
+        });
+    // No operator: a service cannot answer a manual turntable's prompts (the station says so).
+    let hw = station::hardware::open(&cfg, &rig, None)?;
+    if stop.load(Ordering::SeqCst) {
+        return Ok(cubecal::exit::INTERRUPTED);
+    }
+    let spec = RunSpec {
+        config: &cfg,
+        rig: &rig,
+        rig_toml: &rig_toml,
+        rig_path,
+        run_dir: &run_dir,
+    };
+    let result = station::run(&spec, hw, sink, stop)?;
+    let mut o = std::io::stdout().lock();
+    if sink.json {
+        let _ = writeln!(o, "{}", serde_json::to_string(&result)?);
+    } else {
+        match &result.profile {
+            Some(p) => {
+                let _ = writeln!(o, "profile: {}", p.display());
+            }
+            None => {
+                let _ = writeln!(o, "profile: none written");
+            }
+        }
+        let _ = writeln!(o, "run directory: {}", result.run_dir.display());
+    }
+    Ok(result.exit_code())
+}
+
+/// On the first SIGTERM or SIGINT: tell systemd we are stopping, and set the station's stop flag.
+fn watch_signals(stop: Arc<AtomicBool>) -> std::io::Result<()> {
+    let mut signals = signal_hook::iterator::Signals::new([SIGTERM, SIGINT])?;
+    std::thread::Builder::new()
+        .name("signals".into())
+        .spawn(move || {
+            if let Some(sig) = signals.forever().next() {
+                let name = if sig == SIGTERM { "SIGTERM" } else { "SIGINT" };
+                stop.store(true, Ordering::SeqCst);
+                notify_stopping(&format!(
+                    "{name}: stopping the turntable and closing the session"
+                ));
+                tracing::info!("{name}: stopping");
+            }
+        })?;
+    Ok(())
+}
