@@ -15,3 +15,9 @@ pub const DEVICE: u8 = 4;
 pub const CALIBRATION_FAILED: u8 = 5;
 /// A calibration was computed but rejected by quality checks; no profile was written.
 pub const QA_REJECTED: u8 = 6;
+/// An output file (run directory, profile, overlay, report) could not be written: disk full, no
+/// permission, missing directory. Nothing that was there before was replaced.
+pub const IO: u8 = 7;
+/// Interrupted by SIGINT or SIGTERM: the turntable was stopped, the session closed and marked
+/// incomplete, no profile written (128 + SIGINT, as shells report it).
+pub const INTERRUPTED: u8 = 130;

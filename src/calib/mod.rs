@@ -14,6 +14,7 @@ pub mod determined;
 pub mod init;
 pub mod linear;
 mod lm;
+pub mod pose;
 pub mod report;
 
 pub use determined::{UNDETERMINED_EFFECT_PX, UndeterminedParam, undetermined_parameters};

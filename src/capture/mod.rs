@@ -17,6 +17,7 @@
 use std::time::Duration;
 
 pub mod convert;
+pub mod images;
 pub mod session;
 pub mod synthetic;
 pub mod v4l2;

@@ -224,6 +224,11 @@ impl SessionWriter {
         self.frames.len()
     }
 
+    /// The header the manifest will carry (e.g. to record how the session ended before `finish`).
+    pub fn header_mut(&mut self) -> &mut SessionHeader {
+        &mut self.header
+    }
+
     /// Write the manifest atomically (temp file in the directory, fsync, rename) and return its path.
     pub fn finish(self) -> Result<PathBuf, SessionError> {
         let path = self.dir.join(MANIFEST);

@@ -812,20 +812,9 @@ fn viewing_distance(rig: &Rig, camera: &Camera) -> f64 {
 /// is a full turn.
 pub fn turntable_poses(rig: &Rig, camera: &Camera, n: usize, sweep_deg: f64) -> Vec<Pose> {
     let base = default_view(rig, camera);
-    let c = rig.centre();
-    let axis = Unit::new_normalize(rig.up);
-    let step = sweep_deg.to_radians() / n.max(1) as f64;
+    let step = sweep_deg / n.max(1) as f64;
     (0..n)
-        .map(|k| {
-            let angle = (k as f64 - (n as f64 - 1.0) / 2.0) * step;
-            let r = Rotation3::from_axis_angle(&axis, angle);
-            // rig' = R (X − c) + c, then the fixed camera.
-            let turn = Pose {
-                rotation: r,
-                translation: c - r * c,
-            };
-            base.compose(&turn)
-        })
+        .map(|k| turned(rig, &base, (k as f64 - (n as f64 - 1.0) / 2.0) * step))
         .collect()
 }
 
@@ -1016,6 +1005,157 @@ impl FrameSource for SyntheticSource {
         };
         self.next += 1;
         Ok(frame)
+    }
+
+    fn flush(&mut self) -> Result<usize, CaptureError> {
+        Ok(0)
+    }
+}
+
+/// The angle a turntable last reported, shared between the station (which writes it after every
+/// settled move) and a [`TurntableScene`] (which renders the rig at it). Degrees; starts at 0.
+#[derive(Debug, Clone, Default)]
+pub struct AngleCell(std::sync::Arc<std::sync::atomic::AtomicU64>);
+
+impl AngleCell {
+    pub fn set(&self, degrees: f64) {
+        self.0
+            .store(degrees.to_bits(), std::sync::atomic::Ordering::SeqCst);
+    }
+    pub fn get(&self) -> f64 {
+        f64::from_bits(self.0.load(std::sync::atomic::Ordering::SeqCst))
+    }
+}
+
+/// `cam_from_rig` of a fixed camera looking at a rig turned by `angle_deg` about its `up` axis through
+/// its centre, from `base` (the pose at 0°): what a camera in front of a turntable sees.
+pub fn turned(rig: &Rig, base: &Pose, angle_deg: f64) -> Pose {
+    let c = rig.centre();
+    let axis = Unit::new_normalize(rig.up);
+    let r = Rotation3::from_axis_angle(&axis, angle_deg.to_radians());
+    base.compose(&Pose {
+        rotation: r,
+        translation: c - r * c,
+    })
+}
+
+/// A synthetic camera in front of a turntable: every frame renders the rig at the angle the turntable
+/// last reported ([`AngleCell`]), so a turntable that settles in the wrong place shows in the images.
+/// Consecutive frames at the same angle share one radiance render (only the noise differs), as a
+/// real camera's frames of a still scene do. [`TurntableScene::with_camera_change`] swaps the camera
+/// from a given frame on (a focus or zoom change mid-run, for tests of the verdict).
+#[derive(Debug, Clone)]
+pub struct TurntableScene {
+    rig: Rig,
+    camera: Camera,
+    base: Pose,
+    settings: RenderSettings,
+    angle: AngleCell,
+    change: Option<(u64, Camera)>,
+    next: u64,
+    frame_interval: Duration,
+    cache: Option<(f64, u64, std::sync::Arc<LinearImage>)>,
+}
+
+impl TurntableScene {
+    /// A scene with the camera at `base` (`cam_from_rig` at 0°), e.g. [`default_view`].
+    pub fn new(
+        rig: Rig,
+        camera: Camera,
+        base: Pose,
+        settings: RenderSettings,
+        angle: AngleCell,
+    ) -> Result<Self, SyntheticError> {
+        camera.validate().map_err(SyntheticError::Camera)?;
+        settings.validate()?;
+        Ok(TurntableScene {
+            rig,
+            camera,
+            base,
+            settings,
+            angle,
+            change: None,
+            next: 0,
+            frame_interval: Duration::from_millis(33),
+            cache: None,
+        })
+    }
+
+    /// From frame `sequence` on, render with `camera` instead.
+    pub fn with_camera_change(
+        mut self,
+        sequence: u64,
+        camera: Camera,
+    ) -> Result<Self, SyntheticError> {
+        camera.validate().map_err(SyntheticError::Camera)?;
+        self.change = Some((sequence, camera));
+        Ok(self)
+    }
+
+    /// The camera that renders frame `sequence`.
+    pub fn camera_at(&self, sequence: u64) -> &Camera {
+        match &self.change {
+            Some((from, cam)) if sequence >= *from => cam,
+            _ => &self.camera,
+        }
+    }
+
+    /// `cam_from_rig` of the rig at `angle_deg`.
+    pub fn pose_at(&self, angle_deg: f64) -> Pose {
+        turned(&self.rig, &self.base, angle_deg)
+    }
+
+    fn name(&self) -> String {
+        format!("synthetic:{}", self.rig.name)
+    }
+}
+
+impl FrameSource for TurntableScene {
+    fn describe(&self) -> SourceInfo {
+        SourceInfo {
+            identity: self.name(),
+            name: format!(
+                "synthetic camera in front of a turntable carrying rig '{}'",
+                self.rig.name
+            ),
+            width: self.camera.image_size[0],
+            height: self.camera.image_size[1],
+            format: "GREY".into(),
+        }
+    }
+
+    fn grab(&mut self, _timeout: Duration) -> Result<Frame, CaptureError> {
+        let angle = self.angle.get();
+        let seq = self.next;
+        let camera = self.camera_at(seq).clone();
+        let generation = match &self.change {
+            Some((from, _)) if seq >= *from => 1,
+            _ => 0,
+        };
+        let radiance = match &self.cache {
+            Some((a, g, img)) if *a == angle && *g == generation => img.clone(),
+            _ => {
+                let pose = self.pose_at(angle);
+                let img =
+                    render_radiance(&self.rig, &camera, &pose, &self.settings).map_err(|e| {
+                        CaptureError::Io {
+                            source_name: self.name(),
+                            context: format!("rendering frame {seq} at {angle}°"),
+                            source: std::io::Error::other(e),
+                        }
+                    })?;
+                let img = std::sync::Arc::new(img);
+                self.cache = Some((angle, generation, img.clone()));
+                img
+            }
+        };
+        let image = finish(&radiance, &camera, &self.settings, seq);
+        self.next += 1;
+        Ok(Frame {
+            sequence: seq,
+            timestamp: self.frame_interval * u32::try_from(seq).unwrap_or(u32::MAX),
+            image,
+        })
     }
 
     fn flush(&mut self) -> Result<usize, CaptureError> {

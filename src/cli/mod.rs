@@ -20,6 +20,7 @@ macro_rules! outln {
     }};
 }
 
+mod calibrate;
 mod capture;
 mod detect;
 mod render;
@@ -43,6 +44,9 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Calibrate a camera: plan poses, drive the turntable, capture, detect, solve, judge, write a
+    /// profile (the station).
+    Calibrate(calibrate::CalibrateArgs),
     /// Solve a calibration from a file of 2D–3D correspondences and print it.
     Solve(solve::SolveArgs),
     /// Render synthetic frames of a rig with exact ground truth.
@@ -96,6 +100,7 @@ pub fn main() -> ExitCode {
     init_logging(cli.verbose);
     let out = Output { json: cli.json };
     let result = match cli.command {
+        Command::Calibrate(args) => calibrate::run(args, out),
         Command::Solve(args) => solve::run(args, out),
         Command::Render(args) => render::run(args, out),
         Command::Detect(args) => detect::run(args, out),
@@ -214,6 +219,15 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::turntable::TurntableError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::station::StationError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::station::config::ConfigError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::capture::session::SessionError>() {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<detect::DetectCliError>() {

@@ -1,9 +1,757 @@
 //! The station: plan poses, move the turntable, capture, detect, judge coverage, solve, give a verdict
-//! and write a profile. Work in progress: the run itself lands with issue 16; the event and verdict
-//! types are the interface the CLI, the service, the profile store and the report build on.
+//! and write a profile — `cubecal calibrate`.
+//!
+//! ## A run
+//! 1. [`hardware::open`] opens the camera (V4L2, a replayed session, photos, or the synthetic camera in
+//!    front of the turntable) and the turntable (serial GRBL/Zaber, their simulators on a pty, a
+//!    manual operator, or none).
+//! 2. Per pose ([`run`]): move and wait until settled, drop the frames queued before the move, grab
+//!    `frames_per_pose` frames, check that consecutive frames agree (motion), detect, check the edges'
+//!    blur, accept the view or reject it with a reason, update the coverage grid. Every frame goes into
+//!    the run's recorded session (`RUN_DIR/session`), whose manifest records the station config and
+//!    rig, so `--replay RUN_DIR/session` re-runs the same data bit for bit.
+//! 3. Solve (robust loss), with the last `plan.held_out` accepted views kept out; each held-out view's
+//!    pose is then solved with the intrinsics fixed ([`crate::calib::pose`]) and its RMS compared with
+//!    the fit's. k3 is fixed (and the verdict says so) when the data leave it undetermined — turntable
+//!    sequences keep the rig near the image centre and determine high-order distortion poorly.
+//! 4. [`judge`] turns the result into a [`Verdict`] of named checks with thresholds and hints.
+//! 5. A passing run writes its profile; a failing one writes none. The run directory holds
+//!    `session/`, `rig.toml`, `observations.json` (accepted views, with faces and held-out marks),
+//!    `result.json` (the `--json` result) and, on a pass, `profile.json`.
+//!
+//! The library never prints: everything a person sees comes from [`Event`]s given to an
+//! [`EventSink`]. A stop flag (set by the CLI's SIGINT/SIGTERM handler) is checked between steps: the
+//! turntable is stopped, the session closed and marked incomplete, and no profile is written.
 
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+pub mod config;
+pub mod coverage;
 pub mod event;
+pub mod hardware;
+pub mod judge;
+pub mod sharpness;
 pub mod verdict;
 
+pub use config::StationConfig;
 pub use event::{Event, EventSink};
 pub use verdict::{Check, Verdict};
+
+use crate::calib::report::CalibrationReport;
+use crate::calib::{Correspondence, View};
+use crate::capture::session::{RigRef, SessionError, SessionHeader, SessionWriter};
+use crate::capture::{CaptureError, SourceInfo};
+use crate::detect::CornerFinder;
+use crate::rig::{Rig, RigError};
+use crate::turntable::{Degrees, Turntable, TurntableError};
+use coverage::Coverage;
+use hardware::{Hardware, Poses};
+
+/// Errors that end a run. Each keeps its cause; [`StationError::exit_code`] maps it to the documented
+/// exit codes.
+#[derive(Debug, thiserror::Error)]
+pub enum StationError {
+    #[error(transparent)]
+    Config(#[from] config::ConfigError),
+    #[error(transparent)]
+    Rig(#[from] RigError),
+    #[error("camera: {0}")]
+    Capture(#[from] CaptureError),
+    #[error("turntable: {0}")]
+    Turntable(#[from] TurntableError),
+    #[error(transparent)]
+    Session(#[from] SessionError),
+    #[error("synthetic camera: {0}")]
+    Synthetic(#[from] crate::capture::synthetic::SyntheticError),
+    #[error("detector: {0}")]
+    Detect(String),
+    #[error("a manual turntable needs an operator to answer its prompts (run interactively)")]
+    NoOperator,
+    #[error("run directory {path} already holds a run; choose another --out")]
+    RunDirExists { path: PathBuf },
+    #[error("cannot write {path}")]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(
+        "interrupted at pose {pose} of {total}; the session in {session} is closed and marked incomplete, no profile was written"
+    )]
+    Interrupted {
+        pose: usize,
+        total: usize,
+        session: PathBuf,
+    },
+}
+
+impl StationError {
+    pub fn exit_code(&self) -> u8 {
+        use crate::exit;
+        match self {
+            StationError::Config(e) => e.exit_code(),
+            StationError::Rig(e) => e.exit_code(),
+            StationError::Capture(e) => e.exit_code(),
+            StationError::Turntable(e) => e.exit_code(),
+            StationError::Session(e) => e.exit_code(),
+            StationError::Synthetic(e) => e.exit_code(),
+            StationError::NoOperator => exit::USAGE,
+            StationError::Detect(_) => exit::INTERNAL,
+            StationError::RunDirExists { .. } => exit::BAD_INPUT,
+            StationError::Write { .. } => exit::IO,
+            StationError::Interrupted { .. } => exit::INTERRUPTED,
+        }
+    }
+}
+
+/// Why a view was accepted or not (result.json `views`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ViewRecord {
+    pub name: String,
+    /// Session frame file the view was detected in.
+    pub frame: Option<String>,
+    pub angle_deg: Option<f64>,
+    pub accepted: bool,
+    pub reason: Option<String>,
+    pub faces: usize,
+    pub corners: usize,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blur_px: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub motion: Option<f64>,
+}
+
+/// A held-out view checked against the fit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HeldOut {
+    pub name: String,
+    pub rms_px: f64,
+    pub max_px: f64,
+    pub rotation: [[f64; 3]; 3],
+    pub translation: [f64; 3],
+}
+
+/// The result of a run: what `--json` prints last and `RUN_DIR/result.json` holds.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunResult {
+    pub verdict: Verdict,
+    /// The calibration, when the solver produced one (also for a failing verdict).
+    pub calibration: Option<CalibrationReport>,
+    pub held_out: Vec<HeldOut>,
+    pub views: Vec<ViewRecord>,
+    /// Where the profile went (null when none was written).
+    pub profile: Option<PathBuf>,
+    pub run_dir: PathBuf,
+    pub device: SourceInfo,
+    /// What the station decided beyond the config (e.g. "k3 fixed: not determined by the data").
+    #[serde(default)]
+    pub notes: Vec<String>,
+    /// The solver's error when it could not calibrate.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub solve_error: Option<String>,
+}
+
+impl RunResult {
+    /// The process exit code of this result: 0 pass, 5 no calibration, 6 rejected by QA.
+    pub fn exit_code(&self) -> u8 {
+        if self.verdict.pass {
+            crate::exit::SUCCESS
+        } else if self.calibration.is_none() && self.solve_error.is_some() {
+            crate::exit::CALIBRATION_FAILED
+        } else {
+            crate::exit::QA_REJECTED
+        }
+    }
+}
+
+/// Inputs of a run besides the hardware.
+#[derive(Debug)]
+pub struct RunSpec<'a> {
+    pub config: &'a StationConfig,
+    pub rig: &'a Rig,
+    /// The rig file's text (recorded in the session and copied into the run directory).
+    pub rig_toml: &'a str,
+    pub rig_path: Option<PathBuf>,
+    pub run_dir: &'a Path,
+}
+
+fn write_file(path: &Path, bytes: &[u8]) -> Result<(), StationError> {
+    crate::rig::svg::write_atomic(path, bytes).map_err(|source| StationError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), StationError> {
+    let text = serde_json::to_vec_pretty(value).map_err(|e| StationError::Write {
+        path: path.to_path_buf(),
+        source: std::io::Error::other(e),
+    })?;
+    write_file(path, &text)
+}
+
+/// The session frames of one pose, and its view.
+struct PoseData {
+    record: ViewRecord,
+    view: Option<(View, Vec<String>)>,
+}
+
+/// Run a station: see the module docs. Returns the result (with its verdict) or the error that ended
+/// the run; in both cases the run directory holds what was done.
+pub fn run(
+    spec: &RunSpec<'_>,
+    mut hw: Hardware,
+    sink: &mut dyn EventSink,
+    stop: &AtomicBool,
+) -> Result<RunResult, StationError> {
+    let cfg = spec.config;
+    let run_dir = spec.run_dir;
+    if run_dir.join("result.json").exists()
+        || run_dir
+            .join("session")
+            .join(crate::capture::session::MANIFEST)
+            .exists()
+    {
+        return Err(StationError::RunDirExists {
+            path: run_dir.to_path_buf(),
+        });
+    }
+    std::fs::create_dir_all(run_dir).map_err(|source| StationError::Write {
+        path: run_dir.to_path_buf(),
+        source,
+    })?;
+    write_file(&run_dir.join("rig.toml"), spec.rig_toml.as_bytes())?;
+    let info = hw.source.describe();
+    let session_dir = run_dir.join("session");
+    let header = SessionHeader {
+        source: info.clone(),
+        device: hw.device.clone(),
+        capture: hw.capture,
+        controls: hw.controls.clone(),
+        rig: Some(RigRef {
+            path: spec.rig_path.clone(),
+            name: Some(spec.rig.name.clone()),
+        }),
+        config: serde_json::json!({
+            "station": cfg,
+            "rig_toml": spec.rig_toml,
+            "complete": false,
+        }),
+    };
+    let mut session = SessionWriter::create(&session_dir, header)?;
+    sink.event(&Event::Opened {
+        source: info.name.clone(),
+        width: info.width,
+        height: info.height,
+        turntable: hw.turntable_name.clone(),
+    });
+    let outcome = capture_poses(spec, &mut hw, &mut session, sink, stop);
+    // Whatever happened, close the session: complete, or marked with what ended it.
+    let end = serde_json::json!(outcome.is_ok());
+    if let Err(e) = &outcome {
+        tracing::warn!(error = %e, "run ended early; stopping the turntable");
+        if let Err(te) = hw.turntable.stop() {
+            tracing::warn!(error = %te, "could not stop the turntable");
+        }
+        if let Some(obj) = session.header_mut().config.as_object_mut() {
+            obj.insert("ended_by".into(), serde_json::json!(e.to_string()));
+        }
+    }
+    if let Some(obj) = session.header_mut().config.as_object_mut() {
+        obj.insert("complete".into(), end);
+    }
+    let finished = session.finish();
+    let poses = outcome?;
+    finished?;
+
+    let result = solve_and_judge(spec, &info, poses, sink);
+    let mut result = result?;
+    // Files: observations and result; a passing run writes its profile.
+    if result.verdict.pass {
+        let path = write_profile(spec, &hw, &result)?;
+        result.profile = Some(path);
+    }
+    write_json(&run_dir.join("result.json"), &result)?;
+    sink.event(&Event::Verdict {
+        verdict: result.verdict.clone(),
+    });
+    Ok(result)
+}
+
+fn capture_poses(
+    spec: &RunSpec<'_>,
+    hw: &mut Hardware,
+    session: &mut SessionWriter,
+    sink: &mut dyn EventSink,
+    stop: &AtomicBool,
+) -> Result<Vec<PoseData>, StationError> {
+    let cfg = spec.config;
+    let fpp = cfg.camera.frames_per_pose.max(1) as usize;
+    let timeout = Duration::from_millis(cfg.camera.grab_timeout_ms);
+    let info = hw.source.describe();
+    let total = match &hw.poses {
+        Poses::Angles(a) => a.len(),
+        Poses::Frames { angles } => angles.len(),
+    };
+    let mut finder = CornerFinder::new().map_err(|e| StationError::Detect(e.to_string()))?;
+    let mut coverage = Coverage::new(info.width, info.height, cfg.qa.coverage_grid);
+    let mut out = Vec::with_capacity(total);
+    let moving = matches!(hw.poses, Poses::Angles(_));
+    if moving {
+        let home = hw.turntable.home()?;
+        if let Some(cell) = &hw.angle {
+            cell.set(home.0);
+        }
+    }
+    for index in 0..total {
+        if stop.load(Ordering::SeqCst) {
+            return Err(StationError::Interrupted {
+                pose: index,
+                total,
+                session: spec.run_dir.join("session"),
+            });
+        }
+        let planned = match &hw.poses {
+            Poses::Angles(a) => Some(a[index]),
+            Poses::Frames { angles } => angles[index],
+        };
+        sink.event(&Event::PosePlanned {
+            index,
+            total,
+            angle_deg: planned,
+            instruction: None,
+        });
+        let mut angle = planned;
+        if moving && let Some(target) = planned {
+            sink.event(&Event::Moving {
+                index,
+                angle_deg: target,
+            });
+            let settled = hw.turntable.move_to(Degrees::checked(target)?)?;
+            if let Some(cell) = &hw.angle {
+                cell.set(settled.0);
+            }
+            angle = Some(settled.0);
+            sink.event(&Event::Settled {
+                index,
+                angle_deg: settled.0,
+            });
+            if cfg.turntable.settle_ms > 0 {
+                std::thread::sleep(Duration::from_millis(cfg.turntable.settle_ms));
+            }
+        }
+        sink.event(&Event::Alive);
+        let flushed = if moving { hw.source.flush()? } else { 0 };
+        let mut frames = Vec::with_capacity(fpp);
+        for _ in 0..fpp {
+            let f = hw.source.grab(timeout)?;
+            sink.event(&Event::Alive);
+            session.add_frame(&f, angle)?;
+            frames.push(f);
+        }
+        let name = format!("pose{index:02}");
+        let frame_file = format!("frame_{:06}.png", session.frame_count() - 1);
+        let last = frames.last().map(|f| f.sequence).unwrap_or_default();
+        sink.event(&Event::FrameGrabbed {
+            index,
+            sequence: last,
+            flushed,
+        });
+        let pose = examine(spec, &mut finder, &frames, name, frame_file, angle)?;
+        match &pose.view {
+            Some((view, _)) => {
+                for p in &view.points {
+                    coverage.add(&p.uv);
+                }
+                sink.event(&Event::ViewAccepted {
+                    index,
+                    name: pose.record.name.clone(),
+                    faces: pose.record.faces,
+                    corners: pose.record.corners,
+                });
+            }
+            None => sink.event(&Event::ViewRejected {
+                index,
+                name: pose.record.name.clone(),
+                reason: pose.record.reason.clone().unwrap_or_default(),
+            }),
+        }
+        out.push(pose);
+        sink.event(&Event::Coverage {
+            views: out.iter().filter(|p| p.view.is_some()).count(),
+            fraction: coverage.fraction(),
+            cells_covered: coverage.covered(),
+            cells_total: coverage.total(),
+        });
+        if cfg.plan.stop_when_sufficient
+            && sufficient(spec, &out, &coverage, info.width, info.height)
+        {
+            tracing::info!(
+                poses = index + 1,
+                "data sufficient; stopping the plan early"
+            );
+            break;
+        }
+    }
+    Ok(out)
+}
+
+/// Detect and check one pose's frames.
+fn examine(
+    spec: &RunSpec<'_>,
+    finder: &mut CornerFinder,
+    frames: &[crate::capture::Frame],
+    name: String,
+    frame_file: String,
+    angle: Option<f64>,
+) -> Result<PoseData, StationError> {
+    let qa = &spec.config.qa;
+    let mut record = ViewRecord {
+        name,
+        frame: Some(frame_file),
+        angle_deg: angle,
+        accepted: false,
+        reason: None,
+        faces: 0,
+        corners: 0,
+        blur_px: None,
+        motion: None,
+    };
+    let reject = |mut record: ViewRecord, reason: String| PoseData {
+        record: {
+            record.reason = Some(reason);
+            record
+        },
+        view: None,
+    };
+    let Some(last) = frames.last() else {
+        return Ok(reject(record, "no frame".into()));
+    };
+    if frames.len() >= 2 {
+        let m = sharpness::motion_fraction(&frames[frames.len() - 2].image, &last.image);
+        record.motion = Some(m);
+        if m > qa.max_motion {
+            return Ok(reject(
+                record,
+                format!(
+                    "the image changed between consecutive frames ({:.1} % of the image): the rig or camera was still moving; increase turntable.settle_ms or fix the camera mount",
+                    100.0 * m
+                ),
+            ));
+        }
+    }
+    let det = match crate::detect::detect(finder, &last.image, spec.rig) {
+        Ok(d) => d,
+        Err(e) => return Ok(reject(record, format!("detection failed: {e}"))),
+    };
+    record.faces = det.faces.len();
+    record.corners = det.faces.iter().map(|f| f.corners.len()).sum();
+    if det.faces.is_empty() {
+        let why: Vec<String> = det
+            .rejected
+            .iter()
+            .map(|r| r.reason.clone())
+            .take(3)
+            .collect();
+        return Ok(reject(
+            record,
+            format!(
+                "no rig face labelled ({}); check that the rig file matches the printed rig",
+                if why.is_empty() {
+                    "nothing found".to_string()
+                } else {
+                    why.join("; ")
+                }
+            ),
+        ));
+    }
+    if record.corners < qa.min_corners {
+        return Ok(reject(
+            record.clone(),
+            format!(
+                "only {} corners labelled (at least {} needed)",
+                record.corners, qa.min_corners
+            ),
+        ));
+    }
+    let blur = sharpness::blur_px(&last.image, &det.faces);
+    record.blur_px = blur;
+    if let Some(b) = blur
+        && b > qa.max_blur_px
+    {
+        return Ok(reject(
+            record,
+            format!(
+                "image blurred: edges spread over σ ≈ {b:.1} px (at most {:.1}); focus the camera on the rig",
+                qa.max_blur_px
+            ),
+        ));
+    }
+    let mut points = Vec::with_capacity(record.corners);
+    let mut faces = Vec::with_capacity(record.corners);
+    for f in &det.faces {
+        let face_name = spec
+            .rig
+            .faces
+            .get(f.face)
+            .map(|x| x.name.clone())
+            .unwrap_or_default();
+        for c in &f.corners {
+            points.push(Correspondence {
+                xyz: c.xyz,
+                uv: c.uv,
+            });
+            faces.push(face_name.clone());
+        }
+    }
+    record.accepted = true;
+    Ok(PoseData {
+        view: Some((
+            View {
+                name: record.name.clone(),
+                points,
+            },
+            faces,
+        )),
+        record,
+    })
+}
+
+/// Whether the accepted views already meet coverage and the σ targets (for `stop_when_sufficient`).
+fn sufficient(spec: &RunSpec<'_>, poses: &[PoseData], coverage: &Coverage, w: u32, h: u32) -> bool {
+    let cfg = spec.config;
+    let views: Vec<View> = poses
+        .iter()
+        .filter_map(|p| p.view.as_ref().map(|v| v.0.clone()))
+        .collect();
+    if views.len() < cfg.qa.min_views + cfg.plan.held_out
+        || coverage.fraction() < cfg.qa.min_coverage
+    {
+        return false;
+    }
+    let fit = &views[..views.len() - cfg.plan.held_out];
+    let Ok(opts) = cfg.solve_options("station config") else {
+        return false;
+    };
+    match crate::calib::solve(fit, [w, h], &opts) {
+        Ok(cal) => {
+            use crate::camera::idx;
+            cal.std_dev[idx::FX] / cal.camera.fx() <= cfg.plan.target_sigma_fx_rel
+                && cal.std_dev[idx::CX] <= cfg.plan.target_sigma_cx_px
+                && cal.std_dev[idx::CY] <= cfg.plan.target_sigma_cx_px
+        }
+        Err(_) => false,
+    }
+}
+
+fn solve_and_judge(
+    spec: &RunSpec<'_>,
+    info: &SourceInfo,
+    poses: Vec<PoseData>,
+    sink: &mut dyn EventSink,
+) -> Result<RunResult, StationError> {
+    let cfg = spec.config;
+    let image_size = [info.width, info.height];
+    let accepted: Vec<(View, Vec<String>, Option<String>)> = poses
+        .iter()
+        .filter_map(|p| {
+            p.view
+                .as_ref()
+                .map(|(v, f)| (v.clone(), f.clone(), p.record.frame.clone()))
+        })
+        .collect();
+    let n_held = if accepted.len() > cfg.plan.held_out + 1 {
+        cfg.plan.held_out
+    } else {
+        0
+    };
+    let n_fit = accepted.len() - n_held;
+    let fit: Vec<View> = accepted[..n_fit].iter().map(|a| a.0.clone()).collect();
+    let held: Vec<View> = accepted[n_fit..].iter().map(|a| a.0.clone()).collect();
+    // observations.json: the accepted views with faces, frames and held-out marks.
+    let raw = crate::observations::RawObservations {
+        image_size,
+        views: accepted
+            .iter()
+            .enumerate()
+            .map(|(i, (v, faces, frame))| crate::observations::RawView {
+                name: Some(v.name.clone()),
+                points: v
+                    .points
+                    .iter()
+                    .zip(faces)
+                    .map(|(c, f)| crate::observations::RawPoint {
+                        xyz: c.xyz.into(),
+                        uv: c.uv.into(),
+                        face: Some(f.clone()),
+                    })
+                    .collect(),
+                frame: frame.clone(),
+                held_out: i >= n_fit,
+            })
+            .collect(),
+    };
+    write_json(&spec.run_dir.join("observations.json"), &raw)?;
+    let views: Vec<ViewRecord> = poses.iter().map(|p| p.record.clone()).collect();
+    let mut coverage = Coverage::new(info.width, info.height, cfg.qa.coverage_grid);
+    for v in &fit {
+        for p in &v.points {
+            coverage.add(&p.uv);
+        }
+    }
+    let mut notes = Vec::new();
+    let mut result = RunResult {
+        verdict: Verdict::default(),
+        calibration: None,
+        held_out: Vec::new(),
+        views,
+        profile: None,
+        run_dir: spec.run_dir.to_path_buf(),
+        device: info.clone(),
+        notes: Vec::new(),
+        solve_error: None,
+    };
+    if fit.len() < 2 {
+        result.verdict = judge::too_few_views(fit.len(), cfg, &result.views);
+        return Ok(result);
+    }
+    sink.event(&Event::Solving {
+        views: fit.len(),
+        points: fit.iter().map(|v| v.points.len()).sum(),
+    });
+    let mut opts = cfg.solve_options("station config")?;
+    let mut cal = match crate::calib::solve(&fit, image_size, &opts) {
+        Ok(c) => c,
+        Err(e) => {
+            result.solve_error = Some(e.to_string());
+            result.verdict = judge::solve_failed(&e, fit.len(), cfg);
+            return Ok(result);
+        }
+    };
+    {
+        use crate::camera::idx;
+        let k3_sd = cal.std_dev[idx::K3];
+        let k3 = cal.camera.params[idx::K3];
+        if cfg.solve.fix_undetermined_k3 && cal.estimated[idx::K3] && k3_sd > k3.abs().max(0.1) {
+            opts.fix.k3 = true;
+            match crate::calib::solve(&fit, image_size, &opts) {
+                Ok(c) => {
+                    notes.push(format!(
+                        "k3 fixed at 0: these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}); add poses with the rig near the image corners to estimate it"
+                    ));
+                    cal = c;
+                }
+                Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
+            }
+        }
+    }
+    let mut held_out = Vec::new();
+    let mut held_failures = Vec::new();
+    for v in &held {
+        match crate::calib::pose::solve_pose(&cal.camera, v) {
+            Ok(fit) => {
+                let m = fit.cam_from_rig.rotation.matrix();
+                held_out.push(HeldOut {
+                    name: v.name.clone(),
+                    rms_px: fit.rms_px,
+                    max_px: fit.max_px,
+                    rotation: [
+                        [m[(0, 0)], m[(0, 1)], m[(0, 2)]],
+                        [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
+                        [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
+                    ],
+                    translation: fit.cam_from_rig.translation.into(),
+                });
+            }
+            Err(e) => held_failures.push((v.name.clone(), e)),
+        }
+    }
+    let max_residual = judge::max_residual(&cal, &fit);
+    result.verdict = judge::judge(&judge::Inputs {
+        cfg,
+        cal: &cal,
+        fit_views: fit.len(),
+        coverage: &coverage,
+        max_residual_px: max_residual,
+        held_out: &held_out,
+        held_failures: &held_failures,
+        views: &result.views,
+    });
+    result.calibration = Some(CalibrationReport::from(&cal));
+    result.held_out = held_out;
+    result.notes = notes;
+    Ok(result)
+}
+
+/// Until the per-device profile store lands, the profile is written atomically into the run
+/// directory (`profile.json`) by this function; the store will take its place behind the same call.
+fn write_profile(
+    spec: &RunSpec<'_>,
+    hw: &Hardware,
+    result: &RunResult,
+) -> Result<PathBuf, StationError> {
+    use sha2::{Digest, Sha256};
+    let hex = |b: &[u8]| -> String {
+        Sha256::digest(b)
+            .iter()
+            .map(|x| format!("{x:02x}"))
+            .collect()
+    };
+    let manifest = spec
+        .run_dir
+        .join("session")
+        .join(crate::capture::session::MANIFEST);
+    let manifest_sha = std::fs::read(&manifest).map(|b| hex(&b)).ok();
+    let profile = serde_json::json!({
+        "format_version": 1,
+        "identity": hw.identity.clone().unwrap_or_else(|| result.device.identity.clone()),
+        "calibration": result.calibration,
+        "verdict": result.verdict,
+        "device": hw.device,
+        "capture": hw.capture,
+        "controls": hw.controls,
+        "rig": {"name": spec.rig.name, "sha256": hex(spec.rig_toml.as_bytes())},
+        "session": {"path": spec.run_dir.join("session"), "manifest_sha256": manifest_sha},
+        "software_version": env!("CARGO_PKG_VERSION"),
+    });
+    let path = spec.run_dir.join("profile.json");
+    write_json(&path, &profile)?;
+    Ok(path)
+}
+
+/// Stop the turntable: used by front ends on their way out after an error.
+pub fn stop_turntable(t: &mut dyn Turntable) {
+    if let Err(e) = t.stop() {
+        tracing::warn!(error = %e, "could not stop the turntable");
+    }
+}
+
+/// `YYYY-MM-DDTHH-MM-SSZ` (UTC, file-name safe) for run directory names and records.
+pub fn utc_stamp(t: std::time::SystemTime) -> String {
+    let secs = t
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    let days = (secs / 86_400) as i64;
+    let rem = secs % 86_400;
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}-{:02}-{:02}Z",
+        rem / 3600,
+        (rem / 60) % 60,
+        rem % 60
+    )
+}

@@ -11,6 +11,12 @@ pub trait Operator: Send {
     fn confirm(&mut self, instruction: &str) -> io::Result<bool>;
 }
 
+impl Operator for Box<dyn Operator> {
+    fn confirm(&mut self, instruction: &str) -> io::Result<bool> {
+        (**self).confirm(instruction)
+    }
+}
+
 /// A turntable turned by hand to marked angles. Positions are what the operator confirmed.
 #[derive(Debug)]
 pub struct ManualTurntable<O> {
