@@ -412,9 +412,10 @@ fn usage_errors_exit_2_before_devices_and_as_json() {
     }
 }
 
-/// Item 8: failing to write an output file is exit 3 with the user's path, not the temporary's.
+/// Item 8: failing to write an output file is exit 7 (`exit::IO`) with the user's path, not the
+/// temporary's.
 #[test]
-fn unwritable_output_is_exit_3_naming_the_users_path() {
+fn unwritable_output_is_exit_7_naming_the_users_path() {
     // (tempfile's own directories are called .tmpXXXX too: use another name.)
     let dir = tempfile::Builder::new()
         .prefix("cubecal-")
@@ -430,7 +431,7 @@ fn unwritable_output_is_exit_3_naming_the_users_path() {
         target.to_str().unwrap(),
     ]);
     let err = stderr(&out);
-    assert_eq!(out.status.code(), Some(3), "{err}");
+    assert_eq!(out.status.code(), Some(7), "{err}");
     assert!(err.contains(target.to_str().unwrap()), "{err}");
     assert!(!err.contains(".tmp"), "{err}");
 }

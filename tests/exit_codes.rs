@@ -78,7 +78,7 @@ const CASES: &[Case] = &[
     Case {
         command: "render",
         failure: "output directory cannot be created or written",
-        code: 3,
+        code: 7,
         args: &[
             "render",
             RIG,
@@ -99,7 +99,7 @@ const CASES: &[Case] = &[
     Case {
         command: "detect",
         failure: "overlay cannot be written",
-        code: 3,
+        code: 7,
         args: &[
             "detect",
             "--rig",
@@ -124,7 +124,7 @@ const CASES: &[Case] = &[
     Case {
         command: "rig print",
         failure: "SVG cannot be written",
-        code: 3,
+        code: 7,
         args: &["rig", "print", RIG, "--out", "/proc/cubecal-cannot-write"],
     },
     Case {
@@ -178,6 +178,35 @@ const CASES: &[Case] = &[
             "grbl",
             "--port",
             "{tmp}/tty",
+        ],
+    },
+    Case {
+        command: "calibrate",
+        failure: "config missing or invalid, run directory already exists",
+        code: 3,
+        args: &["calibrate", "--config", "{tmp}/missing.toml"],
+    },
+    Case {
+        command: "calibrate",
+        failure: "camera or turntable missing, busy or failing",
+        code: 4,
+        args: &[
+            "calibrate",
+            "--device",
+            "{tmp}/video9",
+            "--out",
+            "{tmp}/run",
+        ],
+    },
+    Case {
+        command: "calibrate",
+        failure: "run directory cannot be created or written",
+        code: 7,
+        args: &[
+            "calibrate",
+            "--synthetic",
+            "--out",
+            "/proc/cubecal-cannot-write",
         ],
     },
 ];
@@ -284,7 +313,9 @@ fn readme_general_table_matches_the_constants() {
             BAD_INPUT,
             DEVICE,
             CALIBRATION_FAILED,
-            QA_REJECTED
+            QA_REJECTED,
+            IO,
+            INTERRUPTED
         ]
     );
 }

@@ -80,7 +80,7 @@ impl DetectCliError {
             }
             DetectCliError::OverlayClash { .. } => exit::USAGE,
             // As for every other result file cubecal fails to write (README: exit codes).
-            DetectCliError::CreateOverlayDir { .. } => exit::BAD_INPUT,
+            DetectCliError::CreateOverlayDir { .. } => exit::IO,
         }
     }
 }

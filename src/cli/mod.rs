@@ -153,7 +153,7 @@ fn is_broken_pipe(err: &anyhow::Error) -> bool {
 #[error("{0}")]
 pub struct UsageError(pub String);
 
-/// A result location the command could not create or write (exit 3, like the library's write errors).
+/// A result location the command could not create or write (exit 7, `exit::IO`).
 #[derive(Debug, thiserror::Error)]
 #[error("cannot write {path}")]
 pub struct OutputError {
@@ -162,9 +162,9 @@ pub struct OutputError {
     pub source: std::io::Error,
 }
 
-/// Failing to write a result file the user asked for (an overlay, a rendered frame, a target SVG, a
-/// session): the user's path is named, and the code is 3 (the output location is part of the
-/// configuration), as the README documents.
+/// Failing to write a result file the user asked for (an overlay, a rendered frame, a target SVG):
+/// the user's path is named, and the code is `exit::IO` (7), as the README documents. (The library's
+/// own `exit_code()` of these write errors still says 1; this takes precedence.)
 fn output_write_failure(cause: &(dyn std::error::Error + 'static)) -> bool {
     use cubecal::capture::synthetic::SyntheticError;
     use cubecal::detect::overlay::OverlayError;
@@ -195,7 +195,7 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
             return exit::USAGE;
         }
         if output_write_failure(cause) {
-            return exit::BAD_INPUT;
+            return exit::IO;
         }
         if let Some(e) = cause.downcast_ref::<cubecal::calib::CalibError>() {
             return e.exit_code();
