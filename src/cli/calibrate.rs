@@ -84,10 +84,13 @@ pub fn build_config(
             origin = format!("{} (recorded config)", dir.display());
             match cfg.get("station") {
                 Some(v) => {
-                    let text =
-                        toml::to_string(v).context("re-reading the recorded station config")?;
-                    text.parse::<toml::Table>()
-                        .context("re-reading the recorded station config")?
+                    let recorded: StationConfig =
+                        serde_json::from_value(v.clone()).with_context(|| {
+                            format!("{}: the recorded station config", dir.display())
+                        })?;
+                    toml::Table::try_from(&recorded).with_context(|| {
+                        format!("{}: the recorded station config", dir.display())
+                    })?
                 }
                 None => toml::Table::new(),
             }

@@ -59,13 +59,13 @@ pub enum StationError {
     Config(#[from] config::ConfigError),
     #[error(transparent)]
     Rig(#[from] RigError),
-    #[error("camera: {0}")]
+    #[error(transparent)]
     Capture(#[from] CaptureError),
-    #[error("turntable: {0}")]
+    #[error(transparent)]
     Turntable(#[from] TurntableError),
     #[error(transparent)]
     Session(#[from] SessionError),
-    #[error("synthetic camera: {0}")]
+    #[error(transparent)]
     Synthetic(#[from] crate::capture::synthetic::SyntheticError),
     #[error("detector: {0}")]
     Detect(String),
@@ -225,7 +225,10 @@ pub fn run(
         source,
     })?;
     write_file(&run_dir.join("rig.toml"), spec.rig_toml.as_bytes())?;
-    let info = hw.source.describe();
+    let mut info = hw.source.describe();
+    if let Some(id) = &hw.identity {
+        info.identity = id.clone();
+    }
     let session_dir = run_dir.join("session");
     let header = SessionHeader {
         source: info.clone(),
@@ -451,16 +454,25 @@ fn examine(
     record.faces = det.faces.len();
     record.corners = det.faces.iter().map(|f| f.corners.len()).sum();
     if det.faces.is_empty() {
-        let why: Vec<String> = det
-            .rejected
-            .iter()
-            .map(|r| r.reason.clone())
-            .take(3)
-            .collect();
+        if let Some(b) = sharpness::frame_blur_px(&last.image)
+            && b > qa.max_blur_px
+        {
+            record.blur_px = Some(b);
+            return Ok(reject(
+                record,
+                format!(
+                    "image blurred: edges spread over σ ≈ {b:.1} px (at most {:.1}) and no rig face could be found; focus the camera on the rig",
+                    qa.max_blur_px
+                ),
+            ));
+        }
+        let mut why: Vec<String> = det.rejected.iter().map(|r| r.reason.clone()).collect();
+        why.dedup();
+        why.truncate(3);
         return Ok(reject(
             record,
             format!(
-                "no rig face labelled ({}); check that the rig file matches the printed rig",
+                "no rig face labelled ({}); check that the rig is in view and that the rig file matches the printed rig",
                 if why.is_empty() {
                     "nothing found".to_string()
                 } else {

@@ -148,6 +148,63 @@ pub fn blur_px(img: &GrayImage, faces: &[FaceDetection]) -> Option<f64> {
     Some(widths[widths.len() / 2])
 }
 
+/// Blur σ (px) of a whole frame, for frames where nothing could be detected: the contrast between
+/// the 2nd and 98th intensity percentiles over the 99.7th percentile of the gradient magnitude,
+/// `σ = C / (|∇I|max · √(2π))` for a Gaussian-blurred step of contrast `C`. Coarse (noise raises
+/// the gradient, small features lower the contrast), but it tells a defocused camera from a sharp
+/// one whose rig is not in view. `None` for a featureless frame.
+pub fn frame_blur_px(img: &GrayImage) -> Option<f64> {
+    let (w, h) = img.dimensions();
+    if w < 3 || h < 3 {
+        return None;
+    }
+    let raw = img.as_raw();
+    let mut hist = [0usize; 256];
+    for &v in raw {
+        hist[usize::from(v)] += 1;
+    }
+    let pct = |p: f64| -> f64 {
+        let target = (p * raw.len() as f64) as usize;
+        let mut acc = 0;
+        for (v, n) in hist.iter().enumerate() {
+            acc += n;
+            if acc > target {
+                return v as f64;
+            }
+        }
+        255.0
+    };
+    let contrast = pct(0.98) - pct(0.02);
+    if contrast < 20.0 {
+        return None;
+    }
+    // Gradient magnitudes in half-level bins (at most 255·√2/2... < 181 levels per pixel).
+    let mut ghist = vec![0usize; 512];
+    let (wu, hu) = (w as usize, h as usize);
+    let mut n = 0usize;
+    for y in 1..hu - 1 {
+        for x in 1..wu - 1 {
+            let i = y * wu + x;
+            let gx = (f64::from(raw[i + 1]) - f64::from(raw[i - 1])) / 2.0;
+            let gy = (f64::from(raw[i + wu]) - f64::from(raw[i - wu])) / 2.0;
+            let g = (gx * gx + gy * gy).sqrt();
+            ghist[((g * 2.0) as usize).min(511)] += 1;
+            n += 1;
+        }
+    }
+    let target = (0.997 * n as f64) as usize;
+    let mut acc = 0;
+    let mut g = 0.0;
+    for (b, k) in ghist.iter().enumerate() {
+        acc += k;
+        if acc > target {
+            g = (b as f64 + 0.5) / 2.0;
+            break;
+        }
+    }
+    (g > 0.0).then(|| contrast / (g * (2.0 * std::f64::consts::PI).sqrt()))
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
@@ -199,6 +256,14 @@ mod tests {
         assert!(sharp < 0.6, "sharp {sharp}");
         assert!((b2 - 2.0).abs() < 0.4, "σ 2 → {b2}");
         assert!((b4 - 4.0).abs() < 0.6, "σ 4 → {b4}");
+    }
+
+    #[test]
+    fn frame_blur_tells_defocus_from_sharp() {
+        let sharp = frame_blur_px(&board(0.5).0).unwrap();
+        let b4 = frame_blur_px(&board(4.0).0).unwrap();
+        assert!(sharp < 1.5, "sharp {sharp}");
+        assert!(b4 > 3.0 && b4 < 6.0, "σ 4 → {b4}");
     }
 
     #[test]
