@@ -7,7 +7,13 @@
 //!
 //! `xyz` are rig coordinates in millimetres, `uv` pixel coordinates with integer values at pixel centres.
 //! Field names are fixed so that other tools can feed cubecal. Unknown fields are ignored (other tools
-//! may add their own); missing or mistyped fields are errors naming the file, line and column.
+//! may add their own) but each is named in a warning, so that a misspelt optional field (`nmae`) does
+//! not pass unnoticed; missing or mistyped fields are errors naming the file, line and column. View
+//! names must be unique.
+//!
+//! The output of `cubecal detect --json` (a JSON *array* with one object per image) is read too: each
+//! image in which faces were labelled becomes a view named after the image, its corners the points
+//! (with their face); all images must have the same size, which becomes `image_size`.
 
 use std::path::{Path, PathBuf};
 
@@ -88,13 +94,30 @@ pub struct Observations {
 impl Observations {
     /// Parse and validate from JSON text; `path` is used in messages only.
     pub fn from_json(text: &str, path: &Path) -> Result<Observations, ObservationsError> {
-        let raw: RawObservations =
-            serde_json::from_str(text).map_err(|e| ObservationsError::Parse {
-                path: path.to_path_buf(),
-                line: e.line(),
-                column: e.column(),
-                message: e.to_string(),
+        let parse_error = |e: serde_json::Error| ObservationsError::Parse {
+            path: path.to_path_buf(),
+            line: e.line(),
+            column: e.column(),
+            message: e.to_string(),
+        };
+        let raw: RawObservations = if text.trim_start().starts_with('[') {
+            let images: Vec<DetectedImage> = serde_json::from_str(text).map_err(|e| {
+                let mut err = parse_error(e);
+                if let ObservationsError::Parse { message, .. } = &mut err {
+                    message.push_str(
+                        " (a JSON array is read as the output of `cubecal detect --json`)",
+                    );
+                }
+                err
             })?;
+            from_detections(images, path)?
+        } else {
+            let raw = serde_json::from_str(text).map_err(parse_error)?;
+            if let Ok(value) = serde_json::from_str::<serde_json::Value>(text) {
+                warn_unknown_keys(&value, path);
+            }
+            raw
+        };
         Observations::validate(raw, path)
     }
 
@@ -108,6 +131,19 @@ impl Observations {
     }
 
     fn validate(raw: RawObservations, path: &Path) -> Result<Observations, ObservationsError> {
+        let mut seen = std::collections::HashMap::new();
+        for (i, v) in raw.views.iter().enumerate() {
+            if let Some(name) = &v.name
+                && let Some(first) = seen.insert(name.clone(), i)
+            {
+                return Err(ObservationsError::Invalid {
+                    path: path.to_path_buf(),
+                    reason: format!(
+                        "views[{i}]: name '{name}' is already used by views[{first}]: view names must be unique"
+                    ),
+                });
+            }
+        }
         let invalid = |reason: String| ObservationsError::Invalid {
             path: path.to_path_buf(),
             reason,
@@ -170,6 +206,127 @@ impl Observations {
                 })
                 .collect(),
         }
+    }
+}
+
+/// One image of `cubecal detect --json` (only the fields read here).
+#[derive(Debug, Deserialize)]
+struct DetectedImage {
+    image: String,
+    width: u32,
+    height: u32,
+    faces: Vec<DetectedFace>,
+}
+
+#[derive(Debug, Deserialize)]
+struct DetectedFace {
+    face: String,
+    corners: Vec<DetectedCorner>,
+}
+
+#[derive(Debug, Deserialize)]
+struct DetectedCorner {
+    xyz: [f64; 3],
+    uv: [f64; 2],
+}
+
+/// Views from detections: one per image with labelled faces, named by the image's file stem (its
+/// whole path when two stems clash).
+fn from_detections(
+    images: Vec<DetectedImage>,
+    path: &Path,
+) -> Result<RawObservations, ObservationsError> {
+    let invalid = |reason: String| ObservationsError::Invalid {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let Some(first) = images.first() else {
+        return Err(invalid("detections: no images".into()));
+    };
+    let image_size = [first.width, first.height];
+    let stem = |image: &str| {
+        Path::new(image)
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| image.to_string())
+    };
+    let mut stems: Vec<String> = images.iter().map(|im| stem(&im.image)).collect();
+    stems.sort();
+    let clash = stems.windows(2).any(|w| w[0] == w[1]);
+    let mut views = Vec::new();
+    for (i, im) in images.into_iter().enumerate() {
+        if [im.width, im.height] != image_size {
+            return Err(invalid(format!(
+                "[{i}] ({}): {}×{} image, but the first is {}×{}: one camera's images only",
+                im.image, im.width, im.height, image_size[0], image_size[1]
+            )));
+        }
+        let points: Vec<RawPoint> = im
+            .faces
+            .iter()
+            .flat_map(|f| {
+                f.corners.iter().map(|c| RawPoint {
+                    xyz: c.xyz,
+                    uv: c.uv,
+                    face: Some(f.face.clone()),
+                })
+            })
+            .collect();
+        if points.is_empty() {
+            tracing::info!(image = %im.image, "no faces detected: not a view");
+            continue;
+        }
+        let name = if clash {
+            im.image.clone()
+        } else {
+            stem(&im.image)
+        };
+        views.push(RawView {
+            name: Some(name),
+            points,
+            frame: Some(im.image),
+            held_out: false,
+        });
+    }
+    Ok(RawObservations { image_size, views })
+}
+
+/// Warn about keys the observation format does not define (they are ignored).
+fn warn_unknown_keys(value: &serde_json::Value, path: &Path) {
+    const TOP: &[&str] = &["image_size", "views"];
+    const VIEW: &[&str] = &["name", "points", "frame", "held_out"];
+    const POINT: &[&str] = &["xyz", "uv", "face"];
+    let mut unknown = Vec::new();
+    let mut check = |v: &serde_json::Value, known: &[&str], at: &dyn Fn(&str) -> String| {
+        if let Some(map) = v.as_object() {
+            for k in map.keys().filter(|k| !known.contains(&k.as_str())) {
+                unknown.push(at(k));
+            }
+        }
+    };
+    check(value, TOP, &|k| k.to_string());
+    let views = value.get("views").and_then(|v| v.as_array());
+    for (i, view) in views.into_iter().flatten().enumerate() {
+        check(view, VIEW, &|k| format!("views[{i}].{k}"));
+        let points = view.get("points").and_then(|p| p.as_array());
+        for (j, p) in points.into_iter().flatten().enumerate() {
+            check(p, POINT, &|k| format!("views[{i}].points[{j}].{k}"));
+        }
+    }
+    if !unknown.is_empty() {
+        let shown: Vec<&str> = unknown.iter().take(5).map(String::as_str).collect();
+        tracing::warn!(
+            "{}: ignoring {} unknown key{} ({}{})",
+            path.display(),
+            unknown.len(),
+            if unknown.len() == 1 { "" } else { "s" },
+            shown.join(", "),
+            if unknown.len() > shown.len() {
+                ", …"
+            } else {
+                ""
+            }
+        );
     }
 }
 

@@ -148,6 +148,7 @@ fn fixed_parameters_stay_fixed_and_others_are_recovered() {
             k3: true,
             principal_point: false,
             skew: true,
+            ..Fix::default()
         },
         ..SolveOptions::default()
     };

@@ -415,7 +415,7 @@ fn blank_frame_is_not_an_error_and_says_why_nothing_was_found() {
     let out = cubecal(&["detect", "--rig", RIG, path_str(&p)]);
     assert_eq!(out.status.code(), Some(0));
     assert!(
-        stdout(&out).contains("0 face(s), 0 corners"),
+        stdout(&out).contains("0 faces, 0 corners"),
         "{}",
         stdout(&out)
     );
@@ -431,7 +431,7 @@ fn human_output_names_the_faces() {
     let text = stdout(&out);
     let first = text.lines().next().unwrap();
     assert!(
-        first.starts_with(&format!("{}: 3 face(s), 170 corners in ", png.display())),
+        first.starts_with(&format!("{}: 3 faces, 170 corners in ", png.display())),
         "{text}"
     );
     assert!(first.ends_with(" ms"), "{text}");

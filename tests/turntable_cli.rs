@@ -169,8 +169,9 @@ fn busy_port_says_so_and_exits_4() {
 
 #[test]
 fn serial_protocols_need_a_port() {
+    // A usage error (issue 17, item 7), found by the argument parser before anything is opened.
     let out = cubecal(&["turntable", "move", "30", "--protocol", "zaber"]);
-    assert_eq!(out.status.code(), Some(3));
+    assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--port"));
 }
 

@@ -30,6 +30,19 @@ pub enum InitMethod {
     PlanarFocal,
 }
 
+impl InitMethod {
+    /// How the initial values were found, in words.
+    pub fn describe(self) -> &'static str {
+        match self {
+            InitMethod::Dlt => "the direct linear transform of each 3D view",
+            InitMethod::Zhang => "Zhang's closed form on the planar views",
+            InitMethod::PlanarFocal => {
+                "a focal length per planar view, principal point at the image centre"
+            }
+        }
+    }
+}
+
 /// Initial camera and poses for the refinement.
 #[derive(Debug, Clone)]
 pub struct Initial {

@@ -10,12 +10,14 @@
 use nalgebra::{Vector2, Vector3};
 use serde::Serialize;
 
+pub mod determined;
 pub mod init;
 pub mod linear;
 mod lm;
 pub mod pose;
 pub mod report;
 
+pub use determined::{UNDETERMINED_EFFECT_PX, UndeterminedParam, undetermined_parameters};
 pub use lm::{Calibration, Fix, Loss, SolveOptions, Termination, ViewResult, solve, solve_from};
 
 /// One 2D–3D correspondence: a rig point (mm) and where it was seen (pixels, centre convention).
@@ -79,7 +81,61 @@ pub enum CalibError {
     Unobservable { reason: String },
     #[error("invalid option: {reason}")]
     InvalidOption { reason: String },
+    #[error(
+        "{} not determined by these views (the data cannot tell {} apart from the other parameters): add views at other orientations or hold {} fixed",
+        list_params(params), if params.len() == 1 { "it" } else { "them" }, if params.len() == 1 { "it" } else { "them" }
+    )]
+    Undetermined { params: Vec<String> },
+    #[error(
+        "view '{view}': point {index}: image point ({u:?}, {v:?}) lies outside the {width}×{height} image (image_size in the input is wrong, or the point is)"
+    )]
+    PointOutsideImage {
+        view: String,
+        index: usize,
+        u: f64,
+        v: f64,
+        width: u32,
+        height: u32,
+    },
+    #[error(
+        "view '{view}': point {index}: 3D point ({x:?}, {y:?}, {z:?}) is absurdly far from the rig origin (more than {limit_mm} mm): wrong units?"
+    )]
+    OutOfRange {
+        view: String,
+        index: usize,
+        x: f64,
+        y: f64,
+        z: f64,
+        limit_mm: f64,
+    },
+    #[error(
+        "the solved principal point ({cx:.1}, {cy:.1}) lies outside the {width}×{height} image: the data do not determine it (or image_size is wrong); hold it fixed or add views"
+    )]
+    PrincipalPointOutside {
+        cx: f64,
+        cy: f64,
+        width: u32,
+        height: u32,
+    },
+    #[error("two views are named '{name}' (views {first} and {second}): names must be unique")]
+    DuplicateViewName {
+        name: String,
+        first: usize,
+        second: usize,
+    },
 }
+
+/// `k4, k5 and k6 are` / `k3 is`.
+fn list_params(params: &[String]) -> String {
+    match params {
+        [] => "some parameters are".into(),
+        [one] => format!("parameter {one} is"),
+        [init @ .., last] => format!("parameters {} and {last} are", init.join(", ")),
+    }
+}
+
+/// Rig coordinates (mm) beyond this distance from the origin (10 km) are refused as absurd.
+pub const MAX_RIG_COORDINATE_MM: f64 = 1e7;
 
 impl CalibError {
     /// The process exit code for this error (see [`crate::exit`]).
@@ -94,11 +150,16 @@ impl CalibError {
             | CalibError::EmptyView { .. }
             | CalibError::NoViews
             | CalibError::LeftHandedRig
-            | CalibError::InvalidOption { .. } => exit::BAD_INPUT,
+            | CalibError::InvalidOption { .. }
+            | CalibError::PointOutsideImage { .. }
+            | CalibError::OutOfRange { .. }
+            | CalibError::DuplicateViewName { .. } => exit::BAD_INPUT,
             CalibError::RankDeficient { .. }
             | CalibError::SvdNotConverged { .. }
             | CalibError::Degenerate { .. }
-            | CalibError::Unobservable { .. } => exit::CALIBRATION_FAILED,
+            | CalibError::Unobservable { .. }
+            | CalibError::Undetermined { .. }
+            | CalibError::PrincipalPointOutside { .. } => exit::CALIBRATION_FAILED,
             CalibError::InView { source, .. } => source.exit_code(),
         }
     }
@@ -107,7 +168,9 @@ impl CalibError {
         match self {
             e @ (CalibError::InView { .. }
             | CalibError::DuplicatePoint { .. }
-            | CalibError::EmptyView { .. }) => e,
+            | CalibError::EmptyView { .. }
+            | CalibError::PointOutsideImage { .. }
+            | CalibError::OutOfRange { .. }) => e,
             e => CalibError::InView {
                 view: view.to_string(),
                 source: Box::new(e),
@@ -116,11 +179,27 @@ impl CalibError {
     }
 }
 
-/// Check views for the problems every solver must refuse: no views, empty views, non-finite values and
-/// duplicated 3D points within a view.
+/// Check views for the problems every solver must refuse: no views, empty views, non-finite values,
+/// absurd rig coordinates (beyond [`MAX_RIG_COORDINATE_MM`]), duplicated view names and duplicated 3D
+/// points within a view.
 pub fn validate_views(views: &[View]) -> Result<(), CalibError> {
     if views.is_empty() {
         return Err(CalibError::NoViews);
+    }
+    let mut names: Vec<(&str, usize)> = views
+        .iter()
+        .enumerate()
+        .map(|(i, v)| (v.name.as_str(), i))
+        .collect();
+    names.sort();
+    for w in names.windows(2) {
+        if w[0].0 == w[1].0 {
+            return Err(CalibError::DuplicateViewName {
+                name: w[0].0.to_string(),
+                first: w[0].1,
+                second: w[1].1,
+            });
+        }
     }
     for v in views {
         if v.points.is_empty() {
@@ -143,6 +222,16 @@ pub fn validate_views(views: &[View]) -> Result<(), CalibError> {
                 }
                 .in_view(&v.name));
             }
+            if c.xyz.norm() > MAX_RIG_COORDINATE_MM {
+                return Err(CalibError::OutOfRange {
+                    view: v.name.clone(),
+                    index: i,
+                    x: c.xyz.x,
+                    y: c.xyz.y,
+                    z: c.xyz.z,
+                    limit_mm: MAX_RIG_COORDINATE_MM,
+                });
+            }
         }
         let mut order: Vec<usize> = (0..v.points.len()).collect();
         let key = |i: usize| {
@@ -162,6 +251,28 @@ pub fn validate_views(views: &[View]) -> Result<(), CalibError> {
                     view: v.name.clone(),
                     index: w[1],
                     first: w[0],
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Check that every image point lies inside a `width×height` image, whose pixels cover
+/// `[−0.5, width − 0.5) × [−0.5, height − 0.5)` (pixel-centre convention).
+pub fn validate_image_points(views: &[View], image_size: [u32; 2]) -> Result<(), CalibError> {
+    let [w, h] = image_size;
+    let inside = |x: f64, n: u32| x >= -0.5 && x <= f64::from(n) - 0.5;
+    for v in views {
+        for (i, c) in v.points.iter().enumerate() {
+            if !(inside(c.uv.x, w) && inside(c.uv.y, h)) {
+                return Err(CalibError::PointOutsideImage {
+                    view: v.name.clone(),
+                    index: i,
+                    u: c.uv.x,
+                    v: c.uv.y,
+                    width: w,
+                    height: h,
                 });
             }
         }

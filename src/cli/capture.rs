@@ -40,22 +40,22 @@ pub struct RecordArgs {
     #[arg(long)]
     pub out: std::path::PathBuf,
     /// Number of frames to record.
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: u32,
     /// Frame width (default: the device's current width).
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub width: Option<u32>,
     /// Frame height (default: the device's current height).
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub height: Option<u32>,
     /// Pixel format FourCC (GREY, Y16, YUYV, UYVY, NV12, RGB3, BGR3, XR24, MJPG); default: best offered.
-    #[arg(long)]
-    pub format: Option<String>,
+    #[arg(long, value_parser = parse_format)]
+    pub format: Option<PixelFormat>,
     /// Requested frame rate.
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub fps: Option<u32>,
     /// Per-frame timeout in milliseconds.
-    #[arg(long, default_value_t = 2000)]
+    #[arg(long, default_value_t = 2000, value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout_ms: u64,
     /// Fixed focus value (default: the value when autofocus is switched off).
     #[arg(long)]
@@ -78,6 +78,23 @@ pub struct RecordArgs {
     /// Rig description file to note in the manifest.
     #[arg(long)]
     pub rig: Option<PathBuf>,
+}
+
+/// A FourCC cubecal converts, checked while parsing (before any device is opened).
+fn parse_format(f: &str) -> Result<PixelFormat, String> {
+    let mut code = [b' '; 4];
+    if f.len() > 4 {
+        return Err(format!("'{f}' is not a FourCC (at most 4 characters)"));
+    }
+    for (c, b) in code.iter_mut().zip(f.to_ascii_uppercase().bytes()) {
+        *c = b;
+    }
+    PixelFormat::from_fourcc(code).ok_or_else(|| {
+        format!(
+            "cubecal converts only {}",
+            PixelFormat::ALL.map(|p| p.to_string()).join(", ")
+        )
+    })
 }
 
 fn sizes_text(s: &FrameSizes) -> String {
@@ -200,24 +217,7 @@ fn error_chain(e: &dyn std::error::Error) -> String {
 }
 
 pub fn run_record(args: RecordArgs, out: Output) -> anyhow::Result<u8> {
-    let format = match &args.format {
-        Some(f) => {
-            let mut code = [b' '; 4];
-            for (c, b) in code.iter_mut().zip(f.to_ascii_uppercase().bytes()) {
-                *c = b;
-            }
-            Some(
-                PixelFormat::from_fourcc(code).ok_or_else(|| CaptureError::Unsupported {
-                    device: args.device.display().to_string(),
-                    reason: format!(
-                        "--format {f}: cubecal converts only {}",
-                        PixelFormat::ALL.map(|p| p.to_string()).join(", ")
-                    ),
-                })?,
-            )
-        }
-        None => None,
-    };
+    let format = args.format;
     let cfg = V4l2Config {
         width: args.width,
         height: args.height,

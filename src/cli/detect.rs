@@ -16,7 +16,8 @@ use image::GrayImage;
 use nalgebra::{Vector2, Vector3};
 use serde::Serialize;
 
-use super::Output;
+use super::solve::count;
+use super::{Output, UsageError};
 
 #[derive(Debug, clap::Args)]
 #[command(
@@ -78,8 +79,8 @@ impl DetectCliError {
                 exit::BAD_INPUT
             }
             DetectCliError::OverlayClash { .. } => exit::USAGE,
-            // As for every other result file cubecal fails to write.
-            DetectCliError::CreateOverlayDir { .. } => exit::INTERNAL,
+            // As for every other result file cubecal fails to write (README: exit codes).
+            DetectCliError::CreateOverlayDir { .. } => exit::IO,
         }
     }
 }
@@ -198,7 +199,7 @@ pub fn run(args: DetectArgs, out: Output) -> anyhow::Result<u8> {
             overlay,
         };
         if !out.json {
-            print_human(&p, &rig);
+            print_human(&p, &rig)?;
         }
         done.push(p);
     }
@@ -222,8 +223,18 @@ fn load_grey(path: &Path) -> Result<GrayImage, DetectCliError> {
 }
 
 /// Where each image's overlay goes (see [`DetectArgs::overlay`]); creates the directory if needed.
-fn overlay_paths(target: &Path, images: &[PathBuf]) -> Result<Vec<PathBuf>, DetectCliError> {
+fn overlay_paths(target: &Path, images: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
     if images.len() == 1 && !target.is_dir() {
+        // Overlays are PNG: a name promising another format would hold the wrong bytes.
+        if let Some(ext) = target.extension()
+            && !ext.eq_ignore_ascii_case("png")
+        {
+            return Err(UsageError(format!(
+                "--overlay {}: overlays are written as PNG; name the file .png",
+                target.display()
+            ))
+            .into());
+        }
         return Ok(vec![target.to_path_buf()]);
     }
     let mut paths = Vec::with_capacity(images.len());
@@ -240,7 +251,8 @@ fn overlay_paths(target: &Path, images: &[PathBuf]) -> Result<Vec<PathBuf>, Dete
                 first: (*first).clone(),
                 second: image.clone(),
                 overlay: path,
-            });
+            }
+            .into());
         }
         owner.insert(path.clone(), image);
         paths.push(path);
@@ -252,38 +264,37 @@ fn overlay_paths(target: &Path, images: &[PathBuf]) -> Result<Vec<PathBuf>, Dete
     Ok(paths)
 }
 
-#[allow(clippy::print_stdout)]
-fn print_human(p: &Processed, rig: &Rig) {
+fn print_human(p: &Processed, rig: &Rig) -> anyhow::Result<()> {
     let det = &p.detection;
     let n_corners: usize = det.faces.iter().map(|f| f.corners.len()).sum();
-    println!(
-        "{}: {} face(s), {} corners in {:.1} ms",
+    outln!(
+        "{}: {}, {} in {:.1} ms",
         p.image.display(),
-        det.faces.len(),
-        n_corners,
+        count(det.faces.len(), "face"),
+        count(n_corners, "corner"),
         p.time_ms
-    );
+    )?;
     for f in &det.faces {
-        println!(
-            "  face '{}': {} corners",
+        outln!(
+            "  face '{}': {}",
             face_name(rig, f.face),
-            f.corners.len()
-        );
+            count(f.corners.len(), "corner")
+        )?;
     }
     for r in &det.rejected {
-        println!("  rejected: {}", r.reason);
+        outln!("  rejected: {}", r.reason)?;
     }
     if let Some(o) = &p.overlay {
-        println!("  overlay: {}", o.display());
+        outln!("  overlay: {}", o.display())?;
     }
+    Ok(())
 }
 
-#[allow(clippy::print_stdout)]
 fn print_json(done: &[Processed], rig: &Rig) -> anyhow::Result<()> {
     let images: Vec<ImageJson<'_>> = done
         .iter()
         .map(|p| ImageJson::new(&p.image, &p.detection, rig, p.time_ms))
         .collect();
-    println!("{}", serde_json::to_string(&images)?);
+    outln!("{}", serde_json::to_string(&images)?)?;
     Ok(())
 }

@@ -1,10 +1,24 @@
 //! Command-line front end: clap subcommands, output rendering (human or `--json`), and the mapping from
 //! library errors to the documented exit codes in [`cubecal::exit`]. No calibration logic lives here.
+//!
+//! Output goes through [`outln!`], which returns write errors instead of panicking: when stdout is a
+//! closed pipe (`cubecal solve big.json | head -1`) the command stops quietly with exit 0, as ripgrep
+//! does. Logs on stderr are coloured only on a terminal, and never when `NO_COLOR` is set.
 
+use std::io::IsTerminal;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use cubecal::exit;
+
+/// `println!` that returns the write's `io::Result` instead of panicking (a closed pipe must not
+/// panic); use with `?` in a command that returns `anyhow::Result`.
+macro_rules! outln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        writeln!(std::io::stdout().lock(), $($arg)*)
+    }};
+}
 
 mod calibrate;
 mod capture;
@@ -73,13 +87,25 @@ pub fn main() -> ExitCode {
         Ok(cli) => cli,
         Err(e) => {
             // clap prints help/version to stdout and usage errors to stderr, with its own exit code
-            // (0 for --help/--version, 2 for usage errors).
+            // (0 for --help/--version, 2 for usage errors). With --json a usage error is also one
+            // JSON object on stdout, like every other error.
             let _ = e.print();
-            return ExitCode::from(if e.use_stderr() {
-                exit::USAGE
-            } else {
-                exit::SUCCESS
-            });
+            if !e.use_stderr() {
+                return ExitCode::from(exit::SUCCESS);
+            }
+            if std::env::args_os().skip(1).any(|a| a == "--json") {
+                let message = e.render().to_string();
+                let first = message
+                    .lines()
+                    .next()
+                    .unwrap_or_default()
+                    .trim_start_matches("error: ")
+                    .to_string();
+                let v =
+                    serde_json::json!({ "error": first, "causes": [], "exit_code": exit::USAGE });
+                let _ = outln!("{v}");
+            }
+            return ExitCode::from(exit::USAGE);
         }
     };
     init_logging(cli.verbose);
@@ -99,6 +125,8 @@ pub fn main() -> ExitCode {
     };
     match result {
         Ok(code) => ExitCode::from(code),
+        // The reader went away (`| head`): nothing left to say, and nobody to say it to.
+        Err(err) if is_broken_pipe(&err) => ExitCode::from(exit::SUCCESS),
         Err(err) => {
             let code = exit_code_for(&err);
             report_error(&err, out);
@@ -116,15 +144,73 @@ fn init_logging(verbose: u8) {
         _ => "trace",
     };
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
+    let colour = std::io::stderr().is_terminal()
+        && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(colour)
         .try_init();
+}
+
+/// Whether the error is a write to a closed pipe.
+fn is_broken_pipe(err: &anyhow::Error) -> bool {
+    err.chain().any(|c| {
+        c.downcast_ref::<std::io::Error>()
+            .is_some_and(|e| e.kind() == std::io::ErrorKind::BrokenPipe)
+    })
+}
+
+/// A command-line usage error found after parsing (options that contradict each other, an output
+/// name the command cannot honour): exit 2, like clap's own.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct UsageError(pub String);
+
+/// A result location the command could not create or write (exit 7, `exit::IO`).
+#[derive(Debug, thiserror::Error)]
+#[error("cannot write {path}")]
+pub struct OutputError {
+    pub path: std::path::PathBuf,
+    #[source]
+    pub source: std::io::Error,
+}
+
+/// Failing to write a result file the user asked for (an overlay, a rendered frame, a target SVG):
+/// the user's path is named, and the code is `exit::IO` (7), as the README documents. (The library's
+/// own `exit_code()` of these write errors still says 1; this takes precedence.)
+fn output_write_failure(cause: &(dyn std::error::Error + 'static)) -> bool {
+    use cubecal::capture::synthetic::SyntheticError;
+    use cubecal::detect::overlay::OverlayError;
+    use cubecal::rig::RigError;
+    cause.downcast_ref::<OutputError>().is_some()
+        || matches!(
+            cause.downcast_ref::<RigError>(),
+            Some(RigError::Write { .. })
+        )
+        || matches!(
+            cause.downcast_ref::<SyntheticError>(),
+            Some(SyntheticError::Write { .. })
+        )
+        || matches!(
+            cause.downcast_ref::<OverlayError>(),
+            Some(OverlayError::Write { .. })
+        )
+        || matches!(
+            cause.downcast_ref::<detect::DetectCliError>(),
+            Some(detect::DetectCliError::CreateOverlayDir { .. })
+        )
 }
 
 /// Map an error to its exit code: the first library error found in the chain decides.
 fn exit_code_for(err: &anyhow::Error) -> u8 {
     for cause in err.chain() {
+        if cause.downcast_ref::<UsageError>().is_some() {
+            return exit::USAGE;
+        }
+        if output_write_failure(cause) {
+            return exit::IO;
+        }
         if let Some(e) = cause.downcast_ref::<cubecal::calib::CalibError>() {
             return e.exit_code();
         }
@@ -178,12 +264,45 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
 }
 
 /// Print an error once, with its chain of causes, to stderr (and as JSON on stdout with `--json`).
-#[allow(clippy::print_stderr, clippy::print_stdout)]
+#[allow(clippy::print_stderr)]
 fn report_error(err: &anyhow::Error, out: Output) {
-    let chain: Vec<String> = err.chain().map(|c| c.to_string()).collect();
+    let chain: Vec<String> = err.chain().map(cause_text).collect();
     if out.json {
         let v = serde_json::json!({ "error": chain.first(), "causes": &chain[1..], "exit_code": exit_code_for(err) });
-        println!("{v}");
+        let _ = outln!("{v}");
     }
     eprintln!("error: {}", chain.join("\n  caused by: "));
+}
+
+/// Longest line of an error message printed whole; longer ones (a parser quoting a 100 KB one-line
+/// file) are cut.
+const MAX_ERROR_LINE_CHARS: usize = 240;
+
+/// One cause as printed: an I/O error behind a write names the OS reason only (the user's path is in
+/// the message above it; the temporary file's is of no use), and over-long lines are cut.
+fn cause_text(cause: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = cause.to_string();
+    // tempfile reports a failed temporary file as `<OS error> at path "<dir>/.tmpXXXX"` and hides the
+    // OS error itself (its `source()` skips it), so the temporary path is cut from the text.
+    if cause.downcast_ref::<std::io::Error>().is_some()
+        && let Some(at) = text.find(" at path \"")
+        && text[at..].contains("/.tmp")
+    {
+        text.truncate(at);
+    }
+    text.lines()
+        .map(|line| {
+            let n = line.chars().count();
+            if n > MAX_ERROR_LINE_CHARS {
+                let cut: String = line.chars().take(MAX_ERROR_LINE_CHARS - 40).collect();
+                format!(
+                    "{cut}… ({} more characters)",
+                    n - (MAX_ERROR_LINE_CHARS - 40)
+                )
+            } else {
+                line.to_string()
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
 }

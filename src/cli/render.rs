@@ -1,9 +1,8 @@
 //! `cubecal render`: synthetic frames of a rig with exact ground truth.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
-use anyhow::Context;
 use cubecal::camera::{Camera, DistortionModel};
 use cubecal::capture::synthetic::{
     Palette, RenderSettings, SyntheticError, default_view, ground_truth, random_poses, render,
@@ -11,7 +10,8 @@ use cubecal::capture::synthetic::{
 };
 use cubecal::rig::Rig;
 
-use super::Output;
+use super::solve::count;
+use super::{Output, OutputError};
 
 /// Which views to render.
 #[derive(Debug, Clone, PartialEq)]
@@ -62,6 +62,8 @@ pub struct RenderArgs {
     /// Rig description (TOML).
     pub rig: PathBuf,
     /// Output directory (created if needed); frames are written as frame_000.png + frame_000.json.
+    /// Frames of an earlier, longer render into the same directory are removed, so that the directory
+    /// holds exactly this render.
     #[arg(long)]
     pub out: PathBuf,
     /// Views: `single`, `turntable:N[:SWEEP_DEG]` (rig turned about its up axis in N equal steps over
@@ -69,22 +71,22 @@ pub struct RenderArgs {
     #[arg(long, default_value = "single")]
     pub poses: PoseSpec,
     /// Image width, px.
-    #[arg(long, default_value_t = 1280, value_parser = clap::value_parser!(u32).range(1..=20_000))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1280, value_parser = clap::value_parser!(u32).range(1..=20_000))]
     pub width: u32,
     /// Image height, px.
-    #[arg(long, default_value_t = 960, value_parser = clap::value_parser!(u32).range(1..=20_000))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 960, value_parser = clap::value_parser!(u32).range(1..=20_000))]
     pub height: u32,
     /// Focal length in x, px.
-    #[arg(long, default_value_t = 1000.0, value_parser = positive)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0, value_parser = positive)]
     pub fx: f64,
     /// Focal length in y, px.
-    #[arg(long, default_value_t = 1000.0, value_parser = positive)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1000.0, value_parser = positive)]
     pub fy: f64,
     /// Principal point x, px (default: image centre, (width − 1)/2).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub cx: Option<f64>,
     /// Principal point y, px (default: image centre, (height − 1)/2).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub cy: Option<f64>,
     /// Radial distortion k1 (OpenCV Brown–Conrady).
     #[arg(long, default_value_t = -0.1, allow_negative_numbers = true)]
@@ -98,29 +100,29 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     pub k3: f64,
     /// Gaussian blur σ, px.
-    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0, value_parser = non_negative)]
     pub blur: f64,
     /// Gaussian noise σ, grey levels.
-    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0, value_parser = non_negative)]
     pub noise: f64,
     /// Gamma (output = linear^(1/G)).
-    #[arg(long, default_value_t = 1.0, value_parser = positive)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1.0, value_parser = positive)]
     pub gamma: f64,
     /// Vignetting: brightness loss at the farthest image corner (0..1).
-    #[arg(long, default_value_t = 0.0, value_parser = fraction)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0, value_parser = fraction)]
     pub vignetting: f64,
     /// Reflectance of the black squares (linear, 0..1; must be below --white). Raise it and lower
     /// --white for a low-contrast print, e.g. `--black 0.3 --white 0.55`.
-    #[arg(long, default_value_t = Palette::default().black, value_parser = fraction)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = Palette::default().black, value_parser = fraction)]
     pub black: f64,
     /// Reflectance of the white squares and the board margin (linear, 0..1; must be above --black).
-    #[arg(long, default_value_t = Palette::default().white, value_parser = fraction)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = Palette::default().white, value_parser = fraction)]
     pub white: f64,
     /// Seed for noise and random poses.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub seed: u64,
     /// Sub-samples per axis for pixels near edges.
-    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=64))]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub supersample: u32,
 }
 
@@ -205,8 +207,11 @@ pub fn run(args: RenderArgs, out: Output) -> anyhow::Result<u8> {
         PoseSpec::Turntable { n, sweep_deg } => turntable_poses(&rig, &camera, n, sweep_deg),
         PoseSpec::Random { n } => random_poses(&rig, &camera, n, args.seed),
     };
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    std::fs::create_dir_all(&args.out).map_err(|source| OutputError {
+        path: args.out.clone(),
+        source,
+    })?;
+    remove_stale_frames(&args.out, poses.len())?;
     let mut frames = Vec::new();
     for (k, pose) in poses.iter().enumerate() {
         let index = k as u64;
@@ -234,17 +239,48 @@ pub fn run(args: RenderArgs, out: Output) -> anyhow::Result<u8> {
             visible_per_face: per_face,
         });
     }
-    print_summary(&rig, &warnings, &frames, out);
+    print_summary(&rig, &warnings, &frames, out)?;
     Ok(cubecal::exit::SUCCESS)
 }
 
-#[allow(clippy::print_stdout)]
+/// Remove `frame_NNN.png` / `frame_NNN.json` with `NNN ≥ n` from `dir`: what an earlier, longer render
+/// left there, which would otherwise pass for frames of this one.
+fn remove_stale_frames(dir: &Path, n: usize) -> anyhow::Result<()> {
+    let entries = std::fs::read_dir(dir).map_err(|source| OutputError {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else { continue };
+        let Some(stem) = name
+            .strip_suffix(".png")
+            .or_else(|| name.strip_suffix(".json"))
+            .and_then(|s| s.strip_prefix("frame_"))
+        else {
+            continue;
+        };
+        let stale = stem.len() >= 3
+            && stem.bytes().all(|b| b.is_ascii_digit())
+            && stem.parse::<usize>().is_ok_and(|k| k >= n);
+        if stale {
+            let path = entry.path();
+            std::fs::remove_file(&path).map_err(|source| OutputError {
+                path: path.clone(),
+                source,
+            })?;
+            tracing::info!("removed {} (left by an earlier render)", path.display());
+        }
+    }
+    Ok(())
+}
+
 fn print_summary(
     rig: &Rig,
     warnings: &[cubecal::rig::RigWarning],
     frames: &[FrameSummary],
     out: Output,
-) {
+) -> anyhow::Result<()> {
     if out.json {
         let v = serde_json::json!({
             "rig": rig.name,
@@ -252,32 +288,33 @@ fn print_summary(
             "warnings": warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>(),
             "frames": frames,
         });
-        println!("{v}");
-        return;
+        outln!("{v}")?;
+        return Ok(());
     }
     for w in warnings {
-        println!("warning: {w}");
+        outln!("warning: {w}")?;
     }
     let names: Vec<&str> = rig.faces.iter().map(|f| f.name.as_str()).collect();
-    println!(
-        "rig '{}': {} faces ({}), {} corners",
+    outln!(
+        "rig '{}': {} ({}), {}",
         rig.name,
-        rig.faces.len(),
+        count(rig.faces.len(), "face"),
         names.join(", "),
-        rig.n_corners()
-    );
+        count(rig.n_corners(), "corner")
+    )?;
     for f in frames {
         let per: Vec<String> = names
             .iter()
             .zip(&f.visible_per_face)
             .map(|(n, c)| format!("{n} {c}"))
             .collect();
-        println!(
-            "{}  {} visible corners ({})  + {}",
+        outln!(
+            "{}  {} visible ({})  + {}",
             f.image.display(),
-            f.visible_corners,
+            count(f.visible_corners, "corner"),
             per.join(", "),
             f.ground_truth.display()
-        );
+        )?;
     }
+    Ok(())
 }

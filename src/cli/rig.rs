@@ -23,19 +23,18 @@ pub fn run(cmd: RigCommand, out: Output) -> anyhow::Result<u8> {
         RigCommand::Print { rig, out: dir } => {
             let (rig, warnings) = Rig::load(&rig)?;
             let paths = svg::write_face_svgs(&rig, &dir)?;
-            print_written(&rig, &warnings, &paths, out);
+            print_written(&rig, &warnings, &paths, out)?;
             Ok(cubecal::exit::SUCCESS)
         }
     }
 }
 
-#[allow(clippy::print_stdout)]
 fn print_written(
     rig: &Rig,
     warnings: &[cubecal::rig::RigWarning],
     paths: &[std::path::PathBuf],
     out: Output,
-) {
+) -> anyhow::Result<()> {
     if out.json {
         let faces: Vec<_> = rig
             .faces
@@ -54,15 +53,15 @@ fn print_written(
             "warnings": warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>(),
             "faces": faces,
         });
-        println!("{v}");
-        return;
+        outln!("{v}")?;
+        return Ok(());
     }
     for w in warnings {
-        println!("warning: {w}");
+        outln!("warning: {w}")?;
     }
     for (f, p) in rig.faces.iter().zip(paths) {
         let lay = svg::PageLayout::for_face(f);
-        println!(
+        outln!(
             "{}: face '{}', {}×{} inner corners, {} mm squares, page {:.1} × {:.1} mm",
             p.display(),
             f.name,
@@ -71,6 +70,7 @@ fn print_written(
             f.square_mm,
             lay.page_width_mm,
             lay.page_height_mm
-        );
+        )?;
     }
+    Ok(())
 }

@@ -55,7 +55,7 @@ pub enum ProtocolArg {
 #[derive(Debug, Args)]
 pub struct Conn {
     /// Serial port path, e.g. /dev/ttyUSB0 (required for grbl and zaber).
-    #[arg(long)]
+    #[arg(long, required_if_eq_any = [("protocol", "grbl"), ("protocol", "zaber")])]
     port: Option<String>,
     /// Protocol spoken by the turntable.
     #[arg(long, value_enum)]
@@ -157,7 +157,7 @@ pub fn run(cmd: TurntableCommand, out: Output) -> anyhow::Result<u8> {
                     "position_deg": pos.0,
                     "resolution_deg": t.resolution().0,
                 }),
-            );
+            )?;
         }
         TurntableCommand::Home(conn) => {
             let mut t = conn.open()?;
@@ -170,7 +170,7 @@ pub fn run(cmd: TurntableCommand, out: Output) -> anyhow::Result<u8> {
                     start.elapsed().as_secs_f64()
                 ),
                 serde_json::json!({ "position_deg": pos.0, "elapsed_s": start.elapsed().as_secs_f64() }),
-            );
+            )?;
         }
         TurntableCommand::Move { angle, conn } => {
             let target = Degrees::checked(angle)?;
@@ -188,7 +188,7 @@ pub fn run(cmd: TurntableCommand, out: Output) -> anyhow::Result<u8> {
                     "position_deg": pos.0,
                     "elapsed_s": start.elapsed().as_secs_f64(),
                 }),
-            );
+            )?;
         }
         TurntableCommand::Status(conn) => {
             let mut t = conn.open()?;
@@ -197,20 +197,20 @@ pub fn run(cmd: TurntableCommand, out: Output) -> anyhow::Result<u8> {
                 out,
                 &format!("position {pos}"),
                 serde_json::json!({ "position_deg": pos.0, "resolution_deg": t.resolution().0 }),
-            );
+            )?;
         }
         TurntableCommand::Simulate(args) => simulate(args, out)?,
     }
     Ok(exit::SUCCESS)
 }
 
-#[allow(clippy::print_stdout)]
-fn render(out: Output, human: &str, json: serde_json::Value) {
+fn render(out: Output, human: &str, json: serde_json::Value) -> anyhow::Result<()> {
     if out.json {
-        println!("{json}");
+        outln!("{json}")?;
     } else {
-        println!("{human}");
+        outln!("{human}")?;
     }
+    Ok(())
 }
 
 impl Conn {
@@ -356,15 +356,15 @@ fn simulate(args: SimulateArgs, out: Output) -> anyhow::Result<()> {
         SimProtocol::Zaber => "zaber",
     };
     if out.json {
-        println!(
+        outln!(
             "{}",
             serde_json::json!({ "protocol": protocol, "port": path })
-        );
+        )?;
     } else {
-        println!("{protocol} simulator on {path}");
-        println!(
+        outln!("{protocol} simulator on {path}")?;
+        outln!(
             "try: cubecal turntable probe --protocol {protocol} --port {path}  (Ctrl-C to stop)"
-        );
+        )?;
     }
     let until = args
         .seconds

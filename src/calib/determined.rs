@@ -1,0 +1,80 @@
+//! Which estimated parameters the data leave undetermined: the check behind `cubecal solve`'s warning
+//! and the station's verdict.
+//!
+//! A parameter is *undetermined* when its standard deviation exceeds its own magnitude (the data cannot
+//! even tell its sign) **and** one standard deviation of it moves the projection of some point of the
+//! image border by more than [`UNDETERMINED_EFFECT_PX`]. The second condition keeps parameters whose
+//! true value is near zero (`p1`, `p2`, `skew`, a small `k3`) and that the data pin down to well below a
+//! pixel's effect from being flagged just because `σ > |value|`: there the calibration is fine.
+//!
+//! The effect of parameter `k` is `σ_k · max ‖∂π/∂θ_k‖` over the four image corners and the four edge
+//! midpoints, each taken on the ray through that pixel under the undistorted pinhole `K` (the profile
+//! is used over the whole image, so the border is where an undetermined term does harm).
+
+use nalgebra::Vector3;
+use serde::Serialize;
+
+use super::Calibration;
+use crate::camera::{N_INTRINSIC, PARAM_NAMES};
+
+/// Effect (px at the image border, for one standard deviation) above which a parameter whose σ
+/// exceeds its value is reported as undetermined.
+pub const UNDETERMINED_EFFECT_PX: f64 = 1.0;
+
+/// An estimated intrinsic parameter the data do not determine.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct UndeterminedParam {
+    /// The parameter's name ([`PARAM_NAMES`]: `fx` … `k6`).
+    pub name: &'static str,
+    pub value: f64,
+    pub std_dev: f64,
+    /// How far one standard deviation moves the projection of the image border, at most (px).
+    pub effect_px: f64,
+}
+
+/// The estimated parameters of `cal` whose standard deviation exceeds their magnitude and moves the
+/// image border by more than [`UNDETERMINED_EFFECT_PX`] (see the module docs), in parameter order.
+pub fn undetermined_parameters(cal: &Calibration) -> Vec<UndeterminedParam> {
+    let cam = &cal.camera;
+    let [w, h] = cam.image_size;
+    let (xmax, ymax) = (f64::from(w) - 0.5, f64::from(h) - 0.5);
+    let (xmid, ymid) = (0.5 * (xmax - 0.5), 0.5 * (ymax - 0.5));
+    let border = [
+        (-0.5, -0.5),
+        (xmax, -0.5),
+        (-0.5, ymax),
+        (xmax, ymax),
+        (xmid, -0.5),
+        (xmid, ymax),
+        (-0.5, ymid),
+        (xmax, ymid),
+    ];
+    let Some(k_inv) = cam.k_matrix().try_inverse() else {
+        return Vec::new();
+    };
+    let mut gain = [0.0f64; N_INTRINSIC];
+    for (u, v) in border {
+        let ray = k_inv * Vector3::new(u, v, 1.0);
+        if let Ok((_, j, _)) = cam.project_cam_with_jacobians(&ray) {
+            for (k, g) in gain.iter_mut().enumerate() {
+                *g = g.max(j.column(k).norm());
+            }
+        }
+    }
+    (0..N_INTRINSIC)
+        .filter(|&k| cal.estimated[k])
+        .filter_map(|k| {
+            let value = cam.params[k];
+            let std_dev = cal.std_dev[k];
+            let effect_px = std_dev * gain[k];
+            (std_dev > value.abs() && effect_px > UNDETERMINED_EFFECT_PX).then_some(
+                UndeterminedParam {
+                    name: PARAM_NAMES[k],
+                    value,
+                    std_dev,
+                    effect_px,
+                },
+            )
+        })
+        .collect()
+}
