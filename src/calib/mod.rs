@@ -14,8 +14,12 @@ pub mod init;
 pub mod linear;
 mod lm;
 pub mod report;
+pub mod rigrefine;
 
 pub use lm::{Calibration, Fix, Loss, SolveOptions, Termination, ViewResult, solve, solve_from};
+pub use rigrefine::{
+    FaceCorrection, RigCalibration, RigPoint, RigRefineOptions, RigView, solve_rig,
+};
 
 /// One 2D–3D correspondence: a rig point (mm) and where it was seen (pixels, centre convention).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -78,6 +82,8 @@ pub enum CalibError {
     Unobservable { reason: String },
     #[error("invalid option: {reason}")]
     InvalidOption { reason: String },
+    #[error("the rig file does not match the printed rig: face '{face}': {reason}")]
+    RigMismatch { face: String, reason: String },
 }
 
 impl CalibError {
@@ -93,7 +99,8 @@ impl CalibError {
             | CalibError::EmptyView { .. }
             | CalibError::NoViews
             | CalibError::LeftHandedRig
-            | CalibError::InvalidOption { .. } => exit::BAD_INPUT,
+            | CalibError::InvalidOption { .. }
+            | CalibError::RigMismatch { .. } => exit::BAD_INPUT,
             CalibError::RankDeficient { .. }
             | CalibError::SvdNotConverged { .. }
             | CalibError::Degenerate { .. }
