@@ -348,3 +348,79 @@ fn a_board_mounted_centimetres_away_is_named() {
     assert!(matches!(&err, CalibError::RigMismatch { face, .. } if face == "side-x"));
     assert_eq!(err.exit_code(), cubecal::exit::BAD_INPUT);
 }
+
+/// Acceptance line 2: `cubecal rig survey` on a session of the hand-built cube writes a rig file that,
+/// used without refinement on another session, calibrates as well as the exact rig.
+#[test]
+fn rig_survey_writes_a_rig_that_calibrates_without_refinement() {
+    use cubecal::capture::synthetic::random_poses;
+    let nominal = nominal_rig();
+    let built = built_from(&nominal, &PERTURBATIONS);
+    let set = EvalSet::Realistic;
+    let (camera, settings) = (set.camera(), set.settings());
+    let dir = tempfile::tempdir().unwrap();
+    let session = dir.path().join("session");
+    std::fs::create_dir(&session).unwrap();
+    for (k, pose) in set.poses(&nominal, 12).iter().enumerate() {
+        let img = render(&built, &camera, pose, &settings, k as u64).unwrap();
+        img.save(session.join(format!("frame_{k:03}.png"))).unwrap();
+    }
+    let nominal_path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/fixtures/rigs/cube_outside.toml"
+    );
+    let surveyed_path = dir.path().join("surveyed.toml");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args(["rig", "survey", nominal_path])
+        .arg(&session)
+        .arg("--out")
+        .arg(&surveyed_path)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{stdout}{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(0));
+    assert!(stdout.contains("side-x: +0.6"), "{stdout}");
+    let text = std::fs::read_to_string(&surveyed_path).unwrap();
+    eprintln!("{text}");
+    let (surveyed, _) = Rig::from_toml_str(&text, "surveyed.toml").unwrap();
+    for f in 0..3 {
+        let d = (face_centre(&surveyed, f) - face_centre(&built, f)).norm();
+        let a = Rotation3::from_matrix_unchecked(
+            face_axes(&surveyed, f) * face_axes(&built, f).transpose(),
+        )
+        .angle()
+        .to_degrees();
+        eprintln!("surveyed face {f}: centre {d:.4} mm, rotation {a:.4}° from the built one");
+        assert!(d <= 0.05 && a <= 0.02);
+    }
+
+    // Another session of the same cube, calibrated without refinement.
+    let mut finder = CornerFinder::new().unwrap();
+    let views: Vec<RigView> = random_poses(&nominal, &camera, 12, 99)
+        .iter()
+        .enumerate()
+        .map(|(k, pose)| {
+            let img = render(&built, &camera, pose, &settings, 100 + k as u64).unwrap();
+            let det = detect(&mut finder, &img, &nominal).unwrap();
+            RigView::from_detection(&det, &format!("eval{k:02}"))
+        })
+        .filter(|v| !v.points.is_empty())
+        .collect();
+    let opts = SolveOptions::default();
+    let solve_with = |rig: &Rig| {
+        let v: Vec<_> = views.iter().map(|v| v.to_view(rig).unwrap()).collect();
+        calib::solve(&v, camera.image_size, &opts).unwrap()
+    };
+    let exact = solve_with(&built);
+    report("second session, exact rig    ", &exact);
+    let with_survey = solve_with(&surveyed);
+    report("second session, surveyed rig ", &with_survey);
+    report("second session, nominal rig  ", &solve_with(&nominal));
+    let e = errors(&with_survey);
+    assert!(e.fx_rel.abs() <= 5e-4 && e.fy_rel.abs() <= 5e-4, "fx, fy");
+    assert!(e.cx_px.abs() <= 0.5 && e.cy_px.abs() <= 0.5, "cx, cy");
+    let rms_ratio = with_survey.rms_px / exact.rms_px;
+    eprintln!("rms surveyed / exact rig: {rms_ratio:.4}");
+    assert!((rms_ratio - 1.0).abs() <= 0.05, "rms ratio {rms_ratio}");
+}

@@ -208,6 +208,23 @@ impl FaceCorrection {
         self.rotation.angle().to_degrees()
     }
 
+    /// The `[faces.survey]` record of a surveyed rig file.
+    pub fn to_survey(&self) -> crate::rig::survey::FaceSurvey {
+        crate::rig::survey::FaceSurvey {
+            refined: self.refined,
+            offset_mm: self.offset_mm,
+            offset_std_mm: self.offset_std_mm,
+            rotation_deg: self.rotation_deg,
+            rotation_std_deg: self.rotation_std_deg,
+            rms_px: if self.rms_px.is_finite() {
+                self.rms_px
+            } else {
+                0.0
+            },
+            n_points: self.n_points,
+        }
+    }
+
     /// "side-x: 0.62 mm along its rows, 0.98 mm along its columns, 0.10 mm out of its plane, tilted
     /// 0.04°, turned 0.01° in its plane".
     pub fn describe(&self) -> String {
