@@ -100,6 +100,46 @@ impl RigView {
         }
     }
 
+    /// Recover the corner labels of an ordinary view made against `rig` (e.g. an observations file the
+    /// station wrote): each point's `xyz` must be one of the rig's corners (within 1e-6 mm).
+    pub fn from_view(view: &View, rig: &Rig) -> Result<RigView, CalibError> {
+        let mut index: Vec<(CornerId, Vector3<f64>)> = rig
+            .corners()
+            .filter_map(|c| rig.corner_xyz(c.face, c.row, c.col).map(|x| (c, x)))
+            .collect();
+        index.sort_by(|a, b| a.1.x.total_cmp(&b.1.x));
+        let points = view
+            .points
+            .iter()
+            .enumerate()
+            .map(|(j, p)| {
+                let lo = index.partition_point(|(_, x)| x.x < p.xyz.x - 1e-6);
+                index[lo..]
+                    .iter()
+                    .take_while(|(_, x)| x.x <= p.xyz.x + 1e-6)
+                    .find(|(_, x)| (x - p.xyz).norm() <= 1e-6)
+                    .map(|&(corner, _)| RigPoint {
+                        corner,
+                        uv: p.uv,
+                        sigma_px: None,
+                    })
+                    .ok_or_else(|| {
+                        CalibError::InvalidOption {
+                            reason: format!(
+                                "point {j} at [{}, {}, {}] mm is not a corner of rig '{}'",
+                                p.xyz.x, p.xyz.y, p.xyz.z, rig.name
+                            ),
+                        }
+                        .in_view(&view.name)
+                    })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(RigView {
+            name: view.name.clone(),
+            points,
+        })
+    }
+
     /// The view with the corners at their positions in `rig` (for the ordinary solver).
     pub fn to_view(&self, rig: &Rig) -> Result<View, CalibError> {
         let points = self
@@ -1182,6 +1222,35 @@ fn check_consistency(faces: &[FaceCorrection], opts: &RigRefineOptions) -> Resul
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn views_made_against_a_rig_get_their_corner_labels_back() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/fixtures/rigs/cube_outside.toml"
+        );
+        let (rig, _) = Rig::load(std::path::Path::new(path)).unwrap();
+        let rv = RigView {
+            name: "v".into(),
+            points: rig
+                .corners()
+                .enumerate()
+                .map(|(k, corner)| RigPoint {
+                    corner,
+                    uv: Vector2::new(k as f64, 0.5),
+                    sigma_px: None,
+                })
+                .collect(),
+        };
+        let back = RigView::from_view(&rv.to_view(&rig).unwrap(), &rig).unwrap();
+        assert_eq!(back, rv);
+        let mut off = rv.to_view(&rig).unwrap();
+        off.points[3].xyz.x += 0.01;
+        assert!(matches!(
+            RigView::from_view(&off, &rig),
+            Err(CalibError::InView { .. })
+        ));
+    }
 
     #[test]
     fn face_and_pose_jacobians_match_central_differences() {
