@@ -3,7 +3,7 @@
 //! reported σ (issue 20, acceptance line 4: the truth within ±2σ in 90–99 % of trials).
 //!
 //! ```sh
-//! cargo run --release --example sigma_coverage -- SET N VIEWS [exact|refine]
+//! cargo run --release --example sigma_coverage -- SET N VIEWS [exact|inflated|refine]
 //! ```
 //! `SET` is `realistic` or `hard` ([`EvalSet`]). Prints per parameter: coverage of ±2σ, mean and
 //! standard deviation of the z-scores `(estimate − truth)/σ` (mean ≠ 0: a bias; std > 1: σ too small),
@@ -31,6 +31,8 @@ fn main() {
     let n: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(20);
     let n_views: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(12);
     let refine = args.get(4).is_some_and(|s| s == "refine");
+    // `exact`: the plain solve's σ; `inflated`: with the neighbour-correlation inflation.
+    let inflate = args.get(4).is_some_and(|s| s == "inflated");
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/fixtures/rigs/cube_outside.toml"
@@ -92,7 +94,12 @@ fn main() {
             .map(|r| r.calibration)
         } else {
             let v: Vec<_> = views.iter().map(|v| v.to_view(&rig).unwrap()).collect();
-            calib::solve(&v, camera.image_size, &SolveOptions::default())
+            calib::solve(&v, camera.image_size, &SolveOptions::default()).map(|mut c| {
+                if inflate {
+                    calib::inflate_for_neighbour_correlation(&mut c, &views, &rig);
+                }
+                c
+            })
         };
         let cal = match cal {
             Ok(c) => c,
@@ -118,7 +125,13 @@ fn main() {
     println!(
         "{set:?}, {n_views} views, {} realisations, {}:",
         z.len(),
-        if refine { "rig refined" } else { "exact rig" }
+        if refine {
+            "rig refined (σ inflated for neighbour correlation)"
+        } else if inflate {
+            "exact rig, σ inflated for neighbour correlation"
+        } else {
+            "exact rig, plain σ"
+        }
     );
     for j in 0..5 {
         let cover = z.iter().filter(|r| r[j].abs() <= 2.0).count() as f64 / m;

@@ -18,7 +18,8 @@ pub mod rigrefine;
 
 pub use lm::{Calibration, Fix, Loss, SolveOptions, Termination, ViewResult, solve, solve_from};
 pub use rigrefine::{
-    FaceCorrection, RigCalibration, RigPoint, RigRefineOptions, RigView, solve_rig,
+    FaceCorrection, NoiseCorrelation, RigCalibration, RigPoint, RigRefineOptions, RigView,
+    inflate_for_neighbour_correlation, solve_rig,
 };
 
 /// One 2D–3D correspondence: a rig point (mm) and where it was seen (pixels, centre convention).
