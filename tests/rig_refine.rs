@@ -424,3 +424,68 @@ fn rig_survey_writes_a_rig_that_calibrates_without_refinement() {
     eprintln!("rms surveyed / exact rig: {rms_ratio:.4}");
     assert!((rms_ratio - 1.0).abs() <= 0.05, "rms ratio {rms_ratio}");
 }
+
+/// The neighbour-correlation inflation on exact projections whose noise is correlated along rows by
+/// construction: corner `(r, c)` gets `(n_c + n_{c+1})/√2` from one white sequence per row, so row
+/// neighbours correlate exactly 0.5. The plain least-squares σ is too small by about √(1 + 2·0.5·m/n);
+/// the inflated one must match the spread of the estimates over seeded trials.
+#[test]
+fn sigma_inflation_matches_row_correlated_corner_noise() {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let nominal = nominal_rig();
+    let (clean, size) = project_views(&nominal, 8, 0.0, 1);
+    let truth = EvalSet::Realistic.camera();
+    let sigma = 0.05;
+    let (mut errs, mut sds, mut rhos) = (Vec::new(), Vec::new(), Vec::new());
+    for trial in 0..40u64 {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(100 + trial);
+        let white = Normal::new(0.0, sigma / 2f64.sqrt()).unwrap();
+        let views: Vec<RigView> = clean
+            .iter()
+            .map(|v| {
+                // One white sequence per (face, row, axis), long enough for every column.
+                let mut seq = std::collections::HashMap::new();
+                let points = v
+                    .points
+                    .iter()
+                    .map(|p| {
+                        let key = (p.corner.face, p.corner.row);
+                        let s: &mut Vec<[f64; 2]> = seq.entry(key).or_insert_with(|| {
+                            (0..=nominal.faces[p.corner.face].cols)
+                                .map(|_| [white.sample(&mut rng), white.sample(&mut rng)])
+                                .collect()
+                        });
+                        let (a, b) = (s[p.corner.col], s[p.corner.col + 1]);
+                        RigPoint {
+                            uv: p.uv + nalgebra::Vector2::new(a[0] + b[0], a[1] + b[1]),
+                            sigma_px: Some(sigma),
+                            ..*p
+                        }
+                    })
+                    .collect();
+                RigView {
+                    name: v.name.clone(),
+                    points,
+                }
+            })
+            .collect();
+        let r = calib::solve_rig(&nominal, &views, size, &RigRefineOptions::default()).unwrap();
+        errs.push(r.calibration.camera.fx() - truth.fx());
+        sds.push(r.calibration.std_dev[0]);
+        rhos.push(r.noise_correlation.along_rows);
+    }
+    let n = errs.len() as f64;
+    let rms_err = (errs.iter().map(|e| e * e).sum::<f64>() / n).sqrt();
+    let mean_sd = sds.iter().sum::<f64>() / n;
+    let rho = rhos.iter().sum::<f64>() / n;
+    eprintln!(
+        "row correlation estimated {rho:.3} (true 0.5); fx error RMS {rms_err:.4} px, inflated σ {mean_sd:.4} px"
+    );
+    assert!((rho - 0.5).abs() < 0.08, "estimated row correlation {rho}");
+    let ratio = rms_err / mean_sd;
+    assert!(
+        (0.7..1.35).contains(&ratio),
+        "fx error RMS / inflated σ = {ratio}"
+    );
+}
