@@ -7,6 +7,24 @@ use std::time::{Duration, Instant};
 use cubecal::calib::{self, SolveOptions};
 use cubecal::synthetic::{add_noise, cube_scenario, reference_camera};
 
+/// This thread's time on a CPU so far (ns), from `/proc/thread-self/schedstat`: on a loaded machine the
+/// wall-clock figures include the time other processes held the cores; this does not.
+fn cpu_ns() -> Option<u64> {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
+fn cpu_ms_per_run(start: Option<u64>, runs: usize) -> String {
+    match (start, cpu_ns()) {
+        (Some(a), Some(b)) => format!("{:.2} ms CPU per run", (b - a) as f64 / 1e6 / runs as f64),
+        _ => "CPU time unavailable".into(),
+    }
+}
+
 fn bench(label: &str, n_views: usize, reps: usize) {
     let camera = reference_camera();
     let sc = cube_scenario(&camera, 200.0, n_views, 42);
@@ -15,6 +33,7 @@ fn bench(label: &str, n_views: usize, reps: usize) {
     let opts = SolveOptions::default();
     // Warm-up.
     let cal = calib::solve(&views, camera.image_size, &opts).unwrap();
+    let cpu0 = cpu_ns();
     let mut times: Vec<Duration> = (0..reps)
         .map(|_| {
             let t = Instant::now();
@@ -23,10 +42,11 @@ fn bench(label: &str, n_views: usize, reps: usize) {
             t.elapsed()
         })
         .collect();
+    let cpu = cpu_ms_per_run(cpu0, reps);
     times.sort();
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
     println!(
-        "{label}: {n_views} views, {n_points} points, brown5: median {:.2} ms (min {:.2}, p90 {:.2}) over {reps} runs; {} LM iterations, rms {:.3} px",
+        "{label}: {n_views} views, {n_points} points, brown5: {cpu}; wall median {:.2} ms (min {:.2}, p90 {:.2}) over {reps} runs; {} LM iterations, rms {:.3} px",
         ms(times[reps / 2]),
         ms(times[0]),
         ms(times[reps * 9 / 10]),
@@ -101,6 +121,7 @@ fn bench_rig_refinement(reps: usize) {
     let n_points: usize = views.iter().map(|v| v.points.len()).sum();
     let opts = RigRefineOptions::default();
     let r = solve_rig(&rig, &views, camera.image_size, &opts).unwrap();
+    let cpu0 = cpu_ns();
     let mut times: Vec<Duration> = (0..reps)
         .map(|_| {
             let t = Instant::now();
@@ -109,10 +130,11 @@ fn bench_rig_refinement(reps: usize) {
             t.elapsed()
         })
         .collect();
+    let cpu = cpu_ms_per_run(cpu0, reps);
     times.sort();
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
     println!(
-        "solve_rig: 12 views × 3 faces, {n_points} points, brown5, 2 faces refined: median {:.2} ms (min {:.2}, p90 {:.2}) over {reps} runs; {} LM iterations, rms {:.3} px",
+        "solve_rig: 12 views × 3 faces, {n_points} points, brown5, 2 faces refined: {cpu}; wall median {:.2} ms (min {:.2}, p90 {:.2}) over {reps} runs; {} LM iterations, rms {:.3} px",
         ms(times[reps / 2]),
         ms(times[0]),
         ms(times[reps * 9 / 10]),
