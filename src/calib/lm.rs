@@ -71,7 +71,7 @@ pub enum Loss {
 }
 
 impl Loss {
-    fn rho(self, s: f64) -> f64 {
+    pub(super) fn rho(self, s: f64) -> f64 {
         match self {
             Loss::Squared => 0.5 * s * s,
             Loss::Huber(c) => {
@@ -86,7 +86,7 @@ impl Loss {
     }
 
     /// IRLS weight `ρ'(s)/s`.
-    fn weight(self, s: f64) -> f64 {
+    pub(super) fn weight(self, s: f64) -> f64 {
         match self {
             Loss::Squared => 1.0,
             Loss::Huber(c) => {
@@ -264,13 +264,13 @@ impl Calibration {
 }
 
 /// The linear map from free parameters to the full 13-vector: `δx = M δθ`.
-struct ParamMap {
-    m: DMatrix<f64>,
-    names: Vec<&'static str>,
+pub(super) struct ParamMap {
+    pub(super) m: DMatrix<f64>,
+    pub(super) names: Vec<&'static str>,
 }
 
 impl ParamMap {
-    fn new(model: DistortionModel, fix: &Fix) -> ParamMap {
+    pub(super) fn new(model: DistortionModel, fix: &Fix) -> ParamMap {
         let mut cols: Vec<(Vec<(usize, f64)>, &'static str)> = Vec::new();
         match fix.aspect_ratio {
             Some(a) => cols.push((vec![(idx::FX, a), (idx::FY, 1.0)], "f")),
@@ -319,13 +319,13 @@ impl ParamMap {
         ParamMap { m, names }
     }
 
-    fn len(&self) -> usize {
+    pub(super) fn len(&self) -> usize {
         self.names.len()
     }
 }
 
 /// Apply the fixes to an initial camera so that fixed parameters hold their fixed values.
-fn apply_fixes(camera: &mut Camera, fix: &Fix) {
+pub(super) fn apply_fixes(camera: &mut Camera, fix: &Fix) {
     let p = &mut camera.params;
     if fix.skew {
         p[idx::SKEW] = 0.0;
@@ -375,7 +375,7 @@ struct Problem<'a> {
     loss: Loss,
 }
 
-fn skew_matrix(v: &Vector3<f64>) -> Matrix3<f64> {
+pub(super) fn skew_matrix(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
 }
 

@@ -16,9 +16,14 @@ pub mod linear;
 mod lm;
 pub mod pose;
 pub mod report;
+pub mod rigrefine;
 
 pub use determined::{UNDETERMINED_EFFECT_PX, UndeterminedParam, undetermined_parameters};
 pub use lm::{Calibration, Fix, Loss, SolveOptions, Termination, ViewResult, solve, solve_from};
+pub use rigrefine::{
+    FaceCorrection, NoiseCorrelation, RigCalibration, RigPoint, RigRefineOptions, RigView,
+    inflate_for_neighbour_correlation, solve_rig,
+};
 
 /// One 2D–3D correspondence: a rig point (mm) and where it was seen (pixels, centre convention).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -123,6 +128,8 @@ pub enum CalibError {
         first: usize,
         second: usize,
     },
+    #[error("the rig file does not match the printed rig: face '{face}': {reason}")]
+    RigMismatch { face: String, reason: String },
 }
 
 /// `k4, k5 and k6 are` / `k3 is`.
@@ -153,7 +160,8 @@ impl CalibError {
             | CalibError::InvalidOption { .. }
             | CalibError::PointOutsideImage { .. }
             | CalibError::OutOfRange { .. }
-            | CalibError::DuplicateViewName { .. } => exit::BAD_INPUT,
+            | CalibError::DuplicateViewName { .. }
+            | CalibError::RigMismatch { .. } => exit::BAD_INPUT,
             CalibError::RankDeficient { .. }
             | CalibError::SvdNotConverged { .. }
             | CalibError::Degenerate { .. }

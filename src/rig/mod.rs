@@ -33,6 +33,7 @@
 //! (`rig.toml: faces[2].cols: expected an integer ≥ 2, got -3`). Direction vectors must be unit length
 //! and orthogonal within [`ORTHONORMAL_TOLERANCE`]; they are then re-orthonormalised exactly.
 
+pub mod survey;
 pub mod svg;
 
 pub(crate) use svg::write_atomic;
@@ -303,18 +304,24 @@ pub struct Rig {
 }
 
 /// The TOML as written: every field optional so that a missing key is reported by its path.
-#[derive(Debug, Clone, Default, Deserialize)]
+/// (Serialised by [`survey`] to write a surveyed rig.)
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawRig {
     pub name: Option<String>,
     pub units: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub up: Option<[f64; 3]>,
+    /// How the rig was surveyed (informational: written by `cubecal rig survey`, not used).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub survey: Option<survey::RigSurvey>,
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub body: Option<RawBody>,
     pub faces: Option<Vec<RawFace>>,
 }
 
 /// `[body]` as written.
-#[derive(Debug, Clone, Default, Deserialize)]
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawBody {
     pub min: Option<[f64; 3]>,
@@ -322,7 +329,7 @@ pub struct RawBody {
 }
 
 /// One `[[faces]]` entry as written.
-#[derive(Debug, Clone, Default, Deserialize)]
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawFace {
     pub name: Option<String>,
@@ -332,8 +339,13 @@ pub struct RawFace {
     pub origin: Option<[f64; 3]>,
     pub col_dir: Option<[f64; 3]>,
     pub row_dir: Option<[f64; 3]>,
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub margin_mm: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub first_square: Option<SquareColour>,
+    /// The face's surveyed deviation from the nominal rig file (informational, not used).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub survey: Option<survey::FaceSurvey>,
 }
 
 impl Rig {
