@@ -188,3 +188,82 @@ fn sigterm_mid_run_exits_130_with_the_session_marked_incomplete() {
     assert_eq!(manifest["config"]["complete"], serde_json::json!(false));
     assert!(!run.join("profile.json").exists());
 }
+
+#[test]
+fn a_passing_replay_goes_into_the_profile_store_and_a_failing_one_does_not() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let ok = cubecal()
+        .args(["calibrate", "--json", "--replay"])
+        .arg(demo())
+        .arg("--out")
+        .arg(dir.path().join("a"))
+        .arg("--store")
+        .arg(&store)
+        .output()
+        .unwrap();
+    assert_eq!(
+        ok.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let last: serde_json::Value = serde_json::from_str(
+        String::from_utf8(ok.stdout)
+            .unwrap()
+            .lines()
+            .last()
+            .unwrap(),
+    )
+    .unwrap();
+    let current = std::path::PathBuf::from(last["profile"].as_str().unwrap());
+    assert!(
+        current.starts_with(&store) && current.ends_with("current.json"),
+        "{current:?}"
+    );
+    assert!(dir.path().join("a/report.html").exists());
+    let before = std::fs::read(&current).unwrap();
+    // The same session judged by a stricter verdict: rejected (6), the stored profile untouched.
+    let bad = cubecal()
+        .args(["calibrate", "--replay"])
+        .arg(demo())
+        .arg("--out")
+        .arg(dir.path().join("b"))
+        .arg("--store")
+        .arg(&store)
+        .args(["--set", "qa.min_coverage=0.9"])
+        .output()
+        .unwrap();
+    assert_eq!(
+        bad.status.code(),
+        Some(6),
+        "{}",
+        String::from_utf8_lossy(&bad.stderr)
+    );
+    assert_eq!(std::fs::read(&current).unwrap(), before);
+    let list = cubecal()
+        .args(["profile", "list", "--store"])
+        .arg(&store)
+        .output()
+        .unwrap();
+    assert!(
+        String::from_utf8_lossy(&list.stdout).contains("demo-camera"),
+        "{}",
+        String::from_utf8_lossy(&list.stdout)
+    );
+}
+
+#[test]
+fn storing_a_synthetic_run_needs_a_device_id() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = cubecal()
+        .args(["calibrate", "--synthetic", "--store"])
+        .arg(dir.path().join("store"))
+        .arg("--out")
+        .arg(dir.path().join("run"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--device-id"), "{err}");
+}

@@ -281,6 +281,9 @@ pub struct QaSection {
     pub max_motion: f64,
     /// Fewest labelled corners for a view to be used.
     pub min_corners: usize,
+    /// A new profile that moves a parameter by more than this many σ from the camera's previous
+    /// profile is noted (a bumped lens, a wrong camera on the station).
+    pub max_jump_sigma: f64,
 }
 
 impl Default for QaSection {
@@ -298,6 +301,7 @@ impl Default for QaSection {
             max_blur_px: 3.0,
             max_motion: 0.01,
             min_corners: 20,
+            max_jump_sigma: 5.0,
         }
     }
 }
@@ -541,6 +545,7 @@ impl StationConfig {
         }
         positive("qa.max_blur_px", q.max_blur_px)?;
         positive("qa.max_motion", q.max_motion)?;
+        positive("qa.max_jump_sigma", q.max_jump_sigma)?;
         if q.min_views < 2 {
             return Err(bad(
                 "qa.min_views",

@@ -17,7 +17,9 @@
 //! 4. [`judge`] turns the result into a [`Verdict`] of named checks with thresholds and hints.
 //! 5. A passing run writes its profile; a failing one writes none. The run directory holds
 //!    `session/`, `rig.toml`, `observations.json` (accepted views, with faces and held-out marks),
-//!    `result.json` (the `--json` result) and, on a pass, `profile.json`.
+//!    `result.json` (the `--json` result), `report.html` (with its plots in `report_plots/`) and, on a
+//!    pass, `profile.json`; with `output.store` set the profile is also committed to the per-device
+//!    store ([`crate::profile::Store`]), and a run without a camera identity is refused up front.
 //!
 //! The library never prints: everything a person sees comes from [`Event`]s given to an
 //! [`EventSink`]. A stop flag (set by the CLI's SIGINT/SIGTERM handler) is checked between steps: the
@@ -72,6 +74,12 @@ pub enum StationError {
     Detect(String),
     #[error("a manual turntable needs an operator to answer its prompts (run interactively)")]
     NoOperator,
+    #[error(transparent)]
+    Profile(#[from] crate::profile::ProfileError),
+    #[error(
+        "no camera identity to store the profile under: give --device-id NAME (camera.device_id) for synthetic and photo runs, or no --store"
+    )]
+    NoIdentity,
     #[error("run directory {path} already holds a run; choose another --out")]
     RunDirExists { path: PathBuf },
     #[error("cannot write {path}")]
@@ -103,6 +111,8 @@ impl StationError {
             StationError::NoOperator => exit::USAGE,
             StationError::Detect(_) => exit::INTERNAL,
             StationError::RunDirExists { .. } => exit::BAD_INPUT,
+            StationError::Profile(e) => e.exit_code(),
+            StationError::NoIdentity => exit::USAGE,
             StationError::Write { .. } => exit::IO,
             StationError::Interrupted { .. } => exit::INTERRUPTED,
         }
@@ -221,6 +231,9 @@ pub fn run(
             path: run_dir.to_path_buf(),
         });
     }
+    if cfg.output.store.is_some() && hw.identity.is_none() {
+        return Err(StationError::NoIdentity);
+    }
     std::fs::create_dir_all(run_dir).map_err(|source| StationError::Write {
         path: run_dir.to_path_buf(),
         source,
@@ -294,10 +307,14 @@ pub fn run(
     let mut result = result?;
     // Files: observations and result; a passing run writes its profile.
     if result.verdict.pass {
-        let path = write_profile(spec, &hw, &result)?;
+        let path = write_profile(spec, &hw, &mut result)?;
         result.profile = Some(path);
     }
     write_json(&run_dir.join("result.json"), &result)?;
+    // The report is for people: a run whose report cannot be drawn is still a run.
+    if let Err(e) = crate::report::write_run_report(run_dir) {
+        tracing::warn!(error = %e, "could not write the run's report.html");
+    }
     sink.event(&Event::Verdict {
         verdict: result.verdict.clone(),
     });
@@ -718,13 +735,15 @@ fn solve_and_judge(
     Ok(result)
 }
 
-/// Until the per-device profile store lands, the profile is written atomically into the run
-/// directory (`profile.json`) by this function; the store will take its place behind the same call.
+/// Write the profile of a passing run: `RUN_DIR/profile.json` always, and into the per-device store
+/// when `output.store` is set (atomic, versioned; a jump beyond `qa.max_jump_sigma` from the previous
+/// profile is noted). Returns where the profile went (the store's `current.json` when stored).
 fn write_profile(
     spec: &RunSpec<'_>,
     hw: &Hardware,
-    result: &RunResult,
+    result: &mut RunResult,
 ) -> Result<PathBuf, StationError> {
+    use crate::profile::{Identity, IdentityOrigin, Profile, RigRef, SessionRef};
     use sha2::{Digest, Sha256};
     let hex = |b: &[u8]| -> String {
         Sha256::digest(b)
@@ -736,22 +755,68 @@ fn write_profile(
         .run_dir
         .join("session")
         .join(crate::capture::session::MANIFEST);
-    let manifest_sha = std::fs::read(&manifest).map(|b| hex(&b)).ok();
-    let profile = serde_json::json!({
-        "format_version": 1,
-        "identity": hw.identity.clone().unwrap_or_else(|| result.device.identity.clone()),
-        "calibration": result.calibration,
-        "verdict": result.verdict,
-        "device": hw.device,
-        "capture": hw.capture,
-        "controls": hw.controls,
-        "rig": {"name": spec.rig.name, "sha256": hex(spec.rig_toml.as_bytes())},
-        "session": {"path": spec.run_dir.join("session"), "manifest_sha256": manifest_sha},
-        "software_version": env!("CARGO_PKG_VERSION"),
-    });
+    let manifest_sha256 = std::fs::read(&manifest)
+        .map(|b| hex(&b))
+        .map_err(|source| StationError::Write {
+            path: manifest.clone(),
+            source,
+        })?;
+    let Some(calibration) = result.calibration.clone() else {
+        return Err(StationError::Detect(
+            "a passing run without a calibration".into(),
+        ));
+    };
+    let origin = if hw.device.is_some() {
+        IdentityOrigin::Device
+    } else if hw.replayed.is_some() {
+        IdentityOrigin::Session
+    } else {
+        IdentityOrigin::User
+    };
+    let profile = Profile {
+        identity: Identity {
+            id: hw
+                .identity
+                .clone()
+                .unwrap_or_else(|| result.device.identity.clone()),
+            origin,
+            device: hw.device.clone(),
+        },
+        calibration,
+        verdict: result.verdict.clone(),
+        controls: hw.controls.clone(),
+        format: hw.capture,
+        rig: RigRef {
+            name: spec.rig.name.clone(),
+            sha256: hex(spec.rig_toml.as_bytes()),
+        },
+        session: Some(SessionRef {
+            path: spec.run_dir.join("session"),
+            manifest_sha256,
+        }),
+        software_version: env!("CARGO_PKG_VERSION").to_string(),
+        created: crate::profile::now_rfc3339(),
+        change: None,
+    };
     let path = spec.run_dir.join("profile.json");
     write_json(&path, &profile)?;
-    Ok(path)
+    let Some(store_dir) = &spec.config.output.store else {
+        return Ok(path);
+    };
+    let store = crate::profile::Store::open(store_dir)?;
+    let outcome = store.commit(
+        &profile,
+        &crate::profile::CommitOptions {
+            jump_sigma: spec.config.qa.max_jump_sigma,
+        },
+    )?;
+    if outcome.jump {
+        result.notes.push(format!(
+            "the profile moved by more than {}σ from the previous one of this camera (see `cubecal profile diff`): a bumped lens or a different camera?",
+            spec.config.qa.max_jump_sigma
+        ));
+    }
+    Ok(outcome.current)
 }
 
 /// Stop the turntable: used by front ends on their way out after an error.
