@@ -1,6 +1,7 @@
 //! Station benchmark: `cargo bench --bench station`. Release build. Prints
-//! 1. the compute per pose beyond waiting for the hardware at 1280×960 — writing the frames into the
-//!    session (PNG), the motion check, detection, the blur check — over 12 turntable poses, 2 frames each;
+//! 1. the compute per pose beyond waiting for the hardware at 1280×960 — queuing the frames to the
+//!    session's writer thread (which encodes the PNGs while the turntable moves), the motion check,
+//!    detection, the blur check — over 12 turntable poses, 2 frames each;
 //! 2. the final solve for 12 poses × 3 faces (+ the held-out pose);
 //! 3. a whole replay of the bundled session (`fixtures/sessions/demo`) through `station::run`, wall time,
 //!    and the process's peak RSS afterwards (VmHWM).
@@ -77,7 +78,8 @@ fn main() {
             rig: None,
             config: serde_json::Value::Null,
         };
-        let mut w = SessionWriter::create(&dir.path().join(format!("s{rep}")), header).unwrap();
+        let mut w =
+            SessionWriter::create_background(&dir.path().join(format!("s{rep}")), header).unwrap();
         for (i, (f1, f2, a)) in frames.iter().enumerate() {
             let t0 = Instant::now();
             w.add_frame(f1, Some(*a)).unwrap();
@@ -114,7 +116,7 @@ fn main() {
     }
     let n = per_pose.len() as u32;
     println!(
-        "station per pose (1280×960, 2 frames, 3 faces): median {:.1} ms — session PNG writes {:.1} ms, motion {:.2} ms, detect {:.1} ms, blur {:.2} ms (means)",
+        "station per pose (1280×960, 2 frames, 3 faces): median {:.1} ms — session writes queued {:.1} ms, motion {:.2} ms, detect {:.1} ms, blur {:.2} ms (means)",
         median(per_pose).as_secs_f64() * 1e3,
         (parts[0] / n).as_secs_f64() * 1e3,
         (parts[1] / n).as_secs_f64() * 1e3,
