@@ -311,13 +311,14 @@ pub fn run(
         result.profile = Some(path);
     }
     write_json(&run_dir.join("result.json"), &result)?;
-    // The report is for people: a run whose report cannot be drawn is still a run.
-    if let Err(e) = crate::report::write_run_report(run_dir) {
-        tracing::warn!(error = %e, "could not write the run's report.html");
-    }
     sink.event(&Event::Verdict {
         verdict: result.verdict.clone(),
     });
+    // The report is for people: a run whose report cannot be drawn is still a run.
+    sink.event(&Event::Alive);
+    if let Err(e) = crate::report::write_run_report(run_dir) {
+        tracing::warn!(error = %e, "could not write the run's report.html");
+    }
     Ok(result)
 }
 
