@@ -1,7 +1,7 @@
 //! `cubecal calibrate`: run the station (src/station) and render its events — a progress bar and one
 //! line per pose on a terminal, one JSON object per line with `--json` (the last is the result).
 
-use std::io::{BufRead, IsTerminal, Write};
+use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
@@ -189,26 +189,6 @@ fn default_run_dir() -> PathBuf {
     PathBuf::from("cubecal-runs").join(cubecal::station::utc_stamp(std::time::SystemTime::now()))
 }
 
-/// The manual turntable's operator, on the terminal.
-#[derive(Debug)]
-struct TerminalOperator;
-
-impl Operator for TerminalOperator {
-    #[allow(clippy::print_stderr)]
-    fn confirm(&mut self, instruction: &str) -> std::io::Result<bool> {
-        eprint!("Please {instruction}, then press Enter (or type n and Enter to abort): ");
-        std::io::stderr().flush()?;
-        let mut line = String::new();
-        if std::io::stdin().lock().read_line(&mut line)? == 0 {
-            return Err(std::io::Error::new(
-                std::io::ErrorKind::UnexpectedEof,
-                "stdin closed",
-            ));
-        }
-        Ok(!line.trim().eq_ignore_ascii_case("n"))
-    }
-}
-
 /// Renders events for a person: a progress bar (on a terminal) and one line per pose.
 struct Human {
     bar: Option<indicatif::ProgressBar>,
@@ -323,7 +303,7 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
         signal_hook::flag::register(sig, Arc::clone(&stop))
             .context("installing the signal handler")?;
     }
-    let operator: Option<Box<dyn Operator>> = Some(Box::new(TerminalOperator));
+    let operator: Option<Box<dyn Operator>> = Some(Box::new(super::turntable::TerminalOperator));
     let hw = station::hardware::open(&cfg, &rig, operator)?;
     let spec = RunSpec {
         config: &cfg,

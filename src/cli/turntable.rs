@@ -285,7 +285,7 @@ impl Conn {
 
 /// The operator of a manual turntable, on the terminal: instructions on stderr, Enter on stdin.
 #[derive(Debug)]
-struct TerminalOperator;
+pub(super) struct TerminalOperator;
 
 impl Operator for TerminalOperator {
     #[allow(clippy::print_stderr)]
