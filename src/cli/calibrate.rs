@@ -282,8 +282,19 @@ impl EventSink for JsonLines {
     }
 }
 
-pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
-    let (cfg, rig_toml, rig_path) = build_config(&args)?;
+/// A validated run: config, rig (text, path, parsed) and run directory.
+pub struct Prepared {
+    pub cfg: StationConfig,
+    pub rig_toml: String,
+    pub rig_path: Option<PathBuf>,
+    pub rig: Rig,
+    pub run_dir: PathBuf,
+}
+
+/// Build the config, parse the rig (warnings logged) and choose the run directory: shared by
+/// `calibrate` and `serve`.
+pub fn prepare(args: &CalibrateArgs) -> anyhow::Result<Prepared> {
+    let (cfg, rig_toml, rig_path) = build_config(args)?;
     let origin = rig_path
         .as_ref()
         .map(|p| p.display().to_string())
@@ -298,6 +309,23 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
         .clone()
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or_else(default_run_dir);
+    Ok(Prepared {
+        cfg,
+        rig_toml,
+        rig_path,
+        rig,
+        run_dir,
+    })
+}
+
+pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
+    let Prepared {
+        cfg,
+        rig_toml,
+        rig_path,
+        rig,
+        run_dir,
+    } = prepare(&args)?;
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         signal_hook::flag::register(sig, Arc::clone(&stop))

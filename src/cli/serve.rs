@@ -18,13 +18,12 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Context;
-use cubecal::rig::Rig;
 use cubecal::station::notify::{SystemdNotifier, notify_stopping};
 use cubecal::station::{self, Event, EventSink, RunSpec};
 use signal_hook::consts::{SIGINT, SIGTERM};
 
 use super::Output;
-use super::calibrate::{CalibrateArgs, build_config};
+use super::calibrate::CalibrateArgs;
 
 #[derive(Debug, clap::Args)]
 pub struct ServeArgs {
@@ -103,23 +102,13 @@ fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow:
         device_id: None,
         set: args.set.clone(),
     };
-    let (cfg, rig_toml, rig_path) = build_config(&calibrate)?;
-    let origin = rig_path
-        .as_ref()
-        .map(|p| p.display().to_string())
-        .unwrap_or_else(|| "the bundled rig".into());
-    let (rig, warnings) = Rig::from_toml_str(&rig_toml, &origin)?;
-    for w in &warnings {
-        tracing::warn!("{w}");
-    }
-    let run_dir = cfg
-        .output
-        .out
-        .clone()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or_else(|| {
-            PathBuf::from("cubecal-runs").join(station::utc_stamp(std::time::SystemTime::now()))
-        });
+    let super::calibrate::Prepared {
+        cfg,
+        rig_toml,
+        rig_path,
+        rig,
+        run_dir,
+    } = super::calibrate::prepare(&calibrate)?;
     // No operator: a service cannot answer a manual turntable's prompts (the station says so).
     let hw = station::hardware::open(&cfg, &rig, None)?;
     if stop.load(Ordering::SeqCst) {

@@ -17,11 +17,11 @@ use crate::capture::v4l2::{
 };
 use crate::capture::{FrameSource, convert::PixelFormat};
 use crate::rig::Rig;
+use crate::turntable::Turntable;
 use crate::turntable::grbl::{Axis, GrblConfig, GrblTurntable};
 use crate::turntable::manual::{FixedRig, MANUAL_RESOLUTION, ManualTurntable, Operator};
 use crate::turntable::sim::{self, GrblSim, SimConfig, SimHandle, ZaberSim};
 use crate::turntable::zaber::{ZaberConfig, ZaberTurntable};
-use crate::turntable::{Degrees, Turntable};
 use serialport::SerialPort;
 
 /// Baud rate of both serial protocols.
@@ -329,9 +329,4 @@ pub fn open(
             })
         }
     }
-}
-
-/// The angle a move actually reached, as a plain number for records.
-pub fn degrees(d: Degrees) -> f64 {
-    d.0
 }

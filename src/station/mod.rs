@@ -306,8 +306,9 @@ pub fn run(
     let result = solve_and_judge(spec, &info, poses, sink);
     let mut result = result?;
     // Files: observations and result; a passing run writes its profile.
-    if result.verdict.pass {
-        let path = write_profile(spec, &hw, &mut result)?;
+    // A passing verdict always comes with a calibration (the checks run only after a solve).
+    if let (true, Some(calibration)) = (result.verdict.pass, result.calibration.clone()) {
+        let path = write_profile(spec, &hw, &mut result, calibration)?;
         result.profile = Some(path);
     }
     write_json(&run_dir.join("result.json"), &result)?;
@@ -743,6 +744,7 @@ fn write_profile(
     spec: &RunSpec<'_>,
     hw: &Hardware,
     result: &mut RunResult,
+    calibration: CalibrationReport,
 ) -> Result<PathBuf, StationError> {
     use crate::profile::{Identity, IdentityOrigin, Profile, RigRef, SessionRef};
     use sha2::{Digest, Sha256};
@@ -762,11 +764,6 @@ fn write_profile(
             path: manifest.clone(),
             source,
         })?;
-    let Some(calibration) = result.calibration.clone() else {
-        return Err(StationError::Detect(
-            "a passing run without a calibration".into(),
-        ));
-    };
     let origin = if hw.device.is_some() {
         IdentityOrigin::Device
     } else if hw.replayed.is_some() {
@@ -818,13 +815,6 @@ fn write_profile(
         ));
     }
     Ok(outcome.current)
-}
-
-/// Stop the turntable: used by front ends on their way out after an error.
-pub fn stop_turntable(t: &mut dyn Turntable) {
-    if let Err(e) = t.stop() {
-        tracing::warn!(error = %e, "could not stop the turntable");
-    }
 }
 
 /// `YYYY-MM-DDTHH-MM-SSZ` (UTC, file-name safe) for run directory names: RFC 3339 with `-` for `:`.
