@@ -1,8 +1,11 @@
-//! Report generation time for a 12-pose station run at 1280×960 (issue 22: ≤ 1 s).
+//! Report generation time for a 12-pose station run at 1280×960 (issue 22: ≤ 1 s), and for a stored
+//! profile with ten versions.
 //!
 //! Builds the run directory first (rendering, detection and solving are not timed), then times
 //! `report::write_run_report` end to end (load, residuals, six plots as SVG and PNG, 13 thumbnails
 //! with overlays, HTML, writing) several times and prints each time, the minimum and the median.
+//! The profile report is timed the same way from `ProfileData::locate` (reading the store: current
+//! and nine history documents) to the written HTML and PNGs (distortion, uncertainty, history).
 //!
 //! `cargo bench --bench report`
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stdout)]
@@ -90,6 +93,36 @@ fn main() {
     times.sort_by(f64::total_cmp);
     println!(
         "report generation, 12 poses: min {:.1} ms, median {:.1} ms (7 runs)",
+        times[0] * 1e3,
+        times[times.len() / 2] * 1e3
+    );
+
+    // A profile with ten stored versions.
+    let store = tmp.path().join("store");
+    let versions: Vec<_> = (0..10).map(report_support::drifting_camera).collect();
+    report_support::build_history(&store, "usb:046d:0825:BENCH", &versions);
+    let out = tmp.path().join("profile.html");
+    let mut times = Vec::new();
+    for i in 0..7 {
+        let t = Instant::now();
+        let data =
+            cubecal::report::profile::ProfileData::locate("usb:046d:0825:BENCH", &store).unwrap();
+        cubecal::report::profile::write_profile_report(&data, &out).unwrap();
+        let dt = t.elapsed().as_secs_f64();
+        if i == 0 {
+            let size = std::fs::metadata(&out).unwrap().len();
+            println!(
+                "profile report ({} versions): {:.0} kB",
+                data.versions().len(),
+                size as f64 / 1024.0
+            );
+        }
+        println!("profile run {i}: {:.1} ms", dt * 1e3);
+        times.push(dt);
+    }
+    times.sort_by(f64::total_cmp);
+    println!(
+        "report generation, profile with 10 versions: min {:.1} ms, median {:.1} ms (7 runs)",
         times[0] * 1e3,
         times[times.len() / 2] * 1e3
     );

@@ -1,7 +1,9 @@
-//! Run reports: the plots show the data they are given (element counts and positions in the SVG,
-//! against data with known values), residuals recomputed from a calibration equal the offsets put
-//! into the observations, and whole reports of a good and a poor-coverage run are written (HTML with
-//! every plot inline and every thumbnail embedded, PNGs beside it that decode), also through the CLI.
+//! Run and profile reports: the plots show the data they are given (element counts and positions in
+//! the SVG, against data with known values), residuals recomputed from a calibration equal the
+//! offsets put into the observations, a profile history with known parameter moves is plotted at
+//! the right distances in σ, and whole reports of a good and a poor-coverage run and of stored
+//! profiles are written (HTML with every plot inline and every thumbnail embedded, PNGs beside it
+//! that decode), also through the CLI.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod report_support;
@@ -19,7 +21,7 @@ use cubecal::report::plots::{
 };
 use cubecal::report::{HeldOutPose, RunData};
 use nalgebra::{Vector2, Vector3};
-use report_support::{Kind, build_run};
+use report_support::{Kind, Param, build_history, build_run, drifting_camera};
 
 /// Attributes of every `<tag ...>` element of an SVG document.
 fn elements(svg: &str, tag: &str) -> Vec<HashMap<String, String>> {
@@ -418,7 +420,8 @@ fn reports_of_a_good_and_a_poor_coverage_run() {
 }
 
 /// Writes the demo run used by `tests/report_chromium.sh` (12 poses at 1280×960, report through the
-/// CLI) and a poor-coverage run with their reports into `$CUBECAL_REPORT_DEMO_DIR`. Ignored by
+/// CLI), a poor-coverage run with their reports, and a profile store with a five-version camera and
+/// its report (`profile/report.html`) into `$CUBECAL_REPORT_DEMO_DIR`. Ignored by
 /// default; the CI script runs it.
 #[test]
 #[ignore]
@@ -433,4 +436,305 @@ fn write_demo_runs() {
     assert_eq!(status.code(), Some(0));
     let poor = build_run(&dir.join("poor_coverage"), Kind::PoorCoverage, 1280, 960);
     cubecal::report::write_run_report(&poor).unwrap();
+    // A camera with five stored versions (drift in f, a jump in cx), reported through the CLI.
+    let versions: Vec<_> = (0..5).map(drifting_camera).collect();
+    let store = dir.join("profile_store");
+    build_history(&store, "usb:046d:0825:DEMO-1", &versions);
+    let out = dir.join("profile/report.html");
+    std::fs::create_dir_all(out.parent().unwrap()).unwrap();
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args([
+            "report",
+            "usb:046d:0825:DEMO-1",
+            "--store",
+            store.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .status()
+        .unwrap();
+    assert_eq!(status.code(), Some(0));
+}
+
+/// A camera's four versions with known moves: fx and cx move (cx jumps by 3.5 px, 6 σ, at v3), the
+/// focal length's σ doubles at v2, k3 is fixed at v1 and estimated later, the rest stays.
+fn known_moves() -> Vec<Vec<Param>> {
+    let v = |fx: f64, sfx: f64, cx: f64, k1: f64, k3: (f64, f64)| {
+        vec![
+            ("fx", fx, sfx),
+            ("fy", 1000.0, 0.5),
+            ("cx", cx, 0.4),
+            ("cy", 480.0, 0.4),
+            ("k1", k1, 0.002),
+            ("k2", 0.1, 0.004),
+            ("p1", 0.001, 0.0001),
+            ("p2", -0.001, 0.0001),
+            ("k3", k3.0, k3.1),
+        ]
+    };
+    vec![
+        v(1000.0, 0.5, 640.0, -0.300, (0.0, 0.0)),
+        v(1001.0, 1.0, 640.0, -0.301, (0.01, 0.01)),
+        v(999.5, 0.5, 644.0, -0.300, (0.02, 0.01)),
+        v(1000.3, 0.5, 640.5, -0.305, (0.015, 0.01)),
+    ]
+}
+
+fn hex(c: plotters::style::RGBColor) -> String {
+    format!("#{:02X}{:02X}{:02X}", c.0, c.1, c.2)
+}
+
+#[test]
+fn profile_history_is_plotted_at_each_versions_distance_in_sigma() {
+    let tmp = tempfile::tempdir().unwrap();
+    let versions = known_moves();
+    build_history(&tmp.path().join("store"), "usb:1d6b:0104:CAM-7", &versions);
+    let data = cubecal::report::profile::ProfileData::locate(
+        "usb:1d6b:0104:CAM-7",
+        &tmp.path().join("store"),
+    )
+    .unwrap();
+    assert_eq!(data.versions().len(), 4);
+    let report = cubecal::report::profile::render_profile(&data, "p").unwrap();
+    let names: Vec<&str> = report.plots.iter().map(|p| p.name).collect();
+    assert_eq!(names, ["distortion", "uncertainty", "history"]);
+    let history = &report.plots[2];
+
+    // Ground truth, from the parameter lists: (p_v − p_cur) / √(σ_v² + σ_cur²), none where either
+    // version holds the parameter fixed.
+    let cur = &versions[3];
+    let order = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"];
+    let want: Vec<Vec<Option<f64>>> = order
+        .iter()
+        .map(|name| {
+            let (_, pc, sc) = *cur.iter().find(|p| p.0 == *name).unwrap();
+            versions
+                .iter()
+                .map(|v| {
+                    let (_, pv, sv) = *v.iter().find(|p| p.0 == *name).unwrap();
+                    (sv > 0.0 && sc > 0.0).then(|| (pv - pc) / f64::hypot(sv, sc))
+                })
+                .collect()
+        })
+        .collect();
+    // Spot checks of the arithmetic itself: fx at v2 is 0.7 / √1.25, cx at v3 is 3.5 / √0.32.
+    assert!((want[0][1].unwrap() - 0.7 / 1.25f64.sqrt()).abs() < 1e-12);
+    assert!((want[2][2].unwrap() - 6.187184335382291).abs() < 1e-9);
+    assert_eq!(want[8][0], None);
+    let got_names: Vec<&str> = report.series.iter().map(|s| s.0.as_str()).collect();
+    assert_eq!(got_names, order);
+    for ((name, got), want) in report.series.iter().zip(&want) {
+        for (g, w) in got.iter().zip(want) {
+            match (g, w) {
+                (Some(g), Some(w)) => assert!((g - w).abs() < 1e-9, "{name}: {g} vs {w}"),
+                _ => assert_eq!(g, w, "{name}"),
+            }
+        }
+    }
+
+    // The SVG: one marker per (parameter, version) with a value — 9 × 4 minus k3 at v1 — in the
+    // parameter's colour, at x = version and y = its Δ/σ.
+    let g = history.geometry;
+    let circles = elements(&history.svg, "circle");
+    assert_eq!(circles.len(), 35);
+    for (k, w) in want.iter().enumerate() {
+        let colour = hex(plots::HistoryFigure::colour(k));
+        let mine: Vec<_> = circles.iter().filter(|c| c["fill"] == colour).collect();
+        let expected: Vec<(usize, f64)> = w
+            .iter()
+            .enumerate()
+            .filter_map(|(i, z)| Some((i, (*z)?)))
+            .collect();
+        assert_eq!(mine.len(), expected.len(), "{}", order[k]);
+        for (c, (i, z)) in mine.iter().zip(&expected) {
+            let (x, y) = g.to_px(*i as f64, *z);
+            assert!((num(c, "cx") - x).abs() <= 1.0, "{} v{i} x", order[k]);
+            assert!(
+                (num(c, "cy") - y).abs() <= 1.0,
+                "{} v{i}: cy {} vs {y} (Δ/σ {z})",
+                order[k],
+                c["cy"]
+            );
+        }
+        // Lines join consecutive versions that both have a value: 3, and 2 for k3.
+        let segments = elements(&history.svg, "polyline")
+            .into_iter()
+            .filter(|l| l.get("stroke").is_some_and(|s| *s == colour))
+            .count();
+        assert_eq!(
+            segments,
+            if order[k] == "k3" { 2 } else { 3 },
+            "{}",
+            order[k]
+        );
+    }
+    // The jump lines are at ±5 σ (the store's default threshold) and the range holds cx's 6.19 σ.
+    let (_, y5) = g.to_px(0.0, 5.0);
+    let (_, ym5) = g.to_px(0.0, -5.0);
+    let dashed: Vec<f64> = elements(&history.svg, "polyline")
+        .into_iter()
+        .filter(|l| l.get("stroke").is_some_and(|s| s == "#D52828"))
+        .map(|l| {
+            let p: Vec<f64> = l["points"]
+                .split([' ', ','])
+                .filter(|s| !s.is_empty())
+                .map(|s| s.parse().unwrap())
+                .collect();
+            p[1]
+        })
+        .collect();
+    assert!(
+        dashed.iter().any(|y| (y - y5).abs() <= 1.0),
+        "{dashed:?} vs {y5}"
+    );
+    assert!(
+        dashed.iter().any(|y| (y - ym5).abs() <= 1.0),
+        "{dashed:?} vs {ym5}"
+    );
+    assert!(g.data_y.0 > 6.19 && g.data_y.1 < -6.19);
+    // Version dates under the axis, a week apart.
+    for d in [
+        "2026-11-01 00:00:00",
+        "2026-11-08 00:00:00",
+        "2026-11-15 00:00:00",
+        "2026-11-22 00:00:00",
+    ] {
+        assert!(history.svg.contains(d), "{d}");
+    }
+
+    // The table prints the same numbers, and the step the store recorded (cx's 4 px jump at v3 is
+    // 4 / √0.32 = 7.07 σ, flagged).
+    let html = &report.html;
+    assert!(html.contains("+6.19 σ"), "cx at v3");
+    assert!(html.contains(&format!("{:+.2} σ", want[0][1].unwrap())));
+    assert!(html.contains("7.0711 JUMP"), "stored step of v3");
+    assert_eq!(html.matches("<tr><td title=").count(), 4);
+    // The current version's parameters with σ, and the stored verdict.
+    assert!(html.contains(
+        "<tr><td>fx</td><td class=\"num\">1000.3000</td><td class=\"num\">± 0.5000</td></tr>"
+    ));
+    assert!(html.contains(
+        "<tr><td>skew</td><td class=\"num\">0.0000</td><td class=\"num\">fixed</td></tr>"
+    ));
+    assert!(html.contains("PASS: calibration accepted") && html.contains("<td>coverage</td>"));
+    assert!(html.contains("usb:1d6b:0104:CAM-7"));
+}
+
+fn cubecal_in(dir: &Path, args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .current_dir(dir)
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn profile_reports_through_the_cli_for_every_way_of_naming_a_profile() {
+    let tmp = tempfile::tempdir().unwrap();
+    let store = tmp.path().join("store");
+    let s = store.to_str().unwrap();
+    let id = "usb:1d6b:0104:CAM-7";
+    let folder = build_history(&store, id, &known_moves());
+    let folder_name = folder.file_name().unwrap().to_str().unwrap().to_string();
+    let versions_of = |html: &str| html.matches("<tr><td title=").count();
+
+    // By identity, default output in the current directory.
+    let out = cubecal_in(tmp.path(), &["report", id, "--store", s]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let html_path = tmp.path().join(format!("report-{folder_name}.html"));
+    let html = std::fs::read_to_string(&html_path).unwrap();
+    assert_eq!(versions_of(&html), 4);
+    assert_eq!(html.matches("<svg ").count(), 3);
+    for name in ["distortion", "uncertainty", "history"] {
+        let png = tmp
+            .path()
+            .join(format!("report-{folder_name}_plots/{name}.png"));
+        let img = image::open(&png).unwrap();
+        assert!(img.width() >= 700, "{name}");
+    }
+    // By folder name in the store, by the folder's path, by its current.json: the same history.
+    let by_folder = tmp.path().join("a.html");
+    let by_path = tmp.path().join("b.html");
+    let by_current = tmp.path().join("c.html");
+    for (target, out_file) in [
+        (folder_name.clone(), &by_folder),
+        (folder.to_str().unwrap().to_string(), &by_path),
+        (
+            folder.join("current.json").to_str().unwrap().to_string(),
+            &by_current,
+        ),
+    ] {
+        let out = cubecal_in(
+            tmp.path(),
+            &[
+                "report",
+                &target,
+                "--store",
+                s,
+                "--out",
+                out_file.to_str().unwrap(),
+                "--json",
+            ],
+        );
+        assert_eq!(
+            out.status.code(),
+            Some(0),
+            "{target}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let line: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(line["report"], out_file.to_str().unwrap());
+        assert_eq!(
+            versions_of(&std::fs::read_to_string(out_file).unwrap()),
+            4,
+            "{target}"
+        );
+    }
+    // One history file alone: that version, no history plot.
+    let oldest = std::fs::read_dir(folder.join("history"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .min()
+        .unwrap();
+    let single = tmp.path().join("single.html");
+    let out = cubecal_in(
+        tmp.path(),
+        &[
+            "report",
+            oldest.to_str().unwrap(),
+            "--out",
+            single.to_str().unwrap(),
+        ],
+    );
+    assert_eq!(out.status.code(), Some(0));
+    let html = std::fs::read_to_string(&single).unwrap();
+    assert_eq!(html.matches("<svg ").count(), 2);
+    assert!(html.contains("No earlier version") && html.contains("1000.0000"));
+    // Nothing of that name, and a store that does not exist (not created): bad input, exit 3.
+    let out = cubecal_in(tmp.path(), &["report", "usb:dead:beef:NONE", "--store", s]);
+    assert_eq!(out.status.code(), Some(3));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("nor a camera in the profile store"));
+    let missing = tmp.path().join("no-store");
+    let out = cubecal_in(
+        tmp.path(),
+        &["report", id, "--store", missing.to_str().unwrap()],
+    );
+    assert_eq!(out.status.code(), Some(3));
+    assert!(!missing.exists());
+    // A newer-format current profile: refused, exit 3.
+    let cur = folder.join("current.json");
+    let text = std::fs::read_to_string(&cur).unwrap();
+    std::fs::write(
+        &cur,
+        text.replacen("\"format_version\": 1", "\"format_version\": 99", 1),
+    )
+    .unwrap();
+    let out = cubecal_in(tmp.path(), &["report", id, "--store", s]);
+    assert_eq!(out.status.code(), Some(3));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("newer"));
 }

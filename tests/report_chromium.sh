@@ -1,16 +1,19 @@
 #!/usr/bin/env bash
-# tests/report_chromium.sh — open the demo run's report in headless Chromium (Debian's `chromium`)
-# and check that every image decoded, every plot is there and nothing was logged to the console.
+# tests/report_chromium.sh — open the demo run's report and a stored profile's report in headless
+# Chromium (Debian's `chromium`) and check that every image decoded, every plot is there and nothing
+# was logged to the console.
 #
 # 1. installs chromium when missing (apt; `apt-get update` first),
-# 2. builds the demo run (12 poses, 1280×960) and a poor-coverage run with their reports through the
-#    ignored test `write_demo_runs` of tests/report.rs,
+# 2. builds the demo run (12 poses, 1280×960), a poor-coverage run and a profile store with a
+#    five-version camera, with their reports, through the ignored test `write_demo_runs` of
+#    tests/report.rs,
 # 3. loads a copy of each report with a small checker script prepended: it records resource and
 #    script errors (capture phase, so a broken <img> counts) and on `load` writes into the DOM how many
 #    images there are, how many failed to decode (naturalWidth 0) and how many inline SVG plots,
 # 4. dumps the DOM with --dump-dom and requires `broken=0 errors=0`, 13 images (one per frame) and
-#    6 plots for the demo; any `CONSOLE` line Chromium logs is a failure too.
-# With REPORT_SHOTS=DIR it also saves full-page screenshots of both reports there.
+#    6 plots for the demo, 3 plots (distortion, uncertainty, history) and no image for the profile;
+#    any `CONSOLE` line Chromium logs is a failure too.
+# With REPORT_SHOTS=DIR it also saves full-page screenshots of the reports there.
 #
 # exit 0 PASS, 1 FAIL, 2 setup error.
 set -euo pipefail
@@ -80,5 +83,7 @@ check() { # run_dir expected_images expected_svgs
 check "$WORK/demo" 13 6
 # poor coverage: 6 poses, all accepted
 check "$WORK/poor_coverage" 6 6
+# profile: plots only (inline SVG), no <img>
+check "$WORK/profile" 0 3
 if [ "$fail" -ne 0 ]; then echo "report_chromium: FAIL"; exit 1; fi
 echo "report_chromium: PASS"

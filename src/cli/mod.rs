@@ -69,7 +69,7 @@ enum Command {
     /// List, show, export, compare and roll back per-camera profiles in the profile store.
     #[command(subcommand)]
     Profile(profile::ProfileCommand),
-    /// Write the self-contained HTML report (plots, thumbnails) of a station run directory.
+    /// Write the self-contained HTML report of a station run directory or of a stored profile.
     Report(report::ReportArgs),
     /// Run the station as a systemd service on one camera (what cubecal@.service runs): one
     /// calibration with READY/STATUS/watchdog notifications, SIGTERM stops it cleanly.

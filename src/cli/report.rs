@@ -1,25 +1,51 @@
-//! `cubecal report RUN_DIR [--out FILE.html]`: the self-contained HTML report of a station run.
+//! `cubecal report RUN_DIR|PROFILE [--out FILE.html] [--store DIR]`: the self-contained HTML report of
+//! a station run or of a camera's stored profile (with its history).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+
+use cubecal::report::profile::ProfileData;
 
 use super::Output;
+use super::profile::DEFAULT_STORE;
 
 #[derive(Debug, clap::Args)]
+#[command(
+    after_help = "TARGET is, in this order: a station run directory (result.json, observations.json, \
+rig.toml, session/); a profile document file (a run's profile.json; a store's .../current.json \
+stands for its camera folder, history included); a camera folder of a profile store (holding \
+current.json and history/); or a camera identity or folder name in the store given by --store, as \
+`cubecal profile show` takes it. A profile report shows the identity, the current parameters with \
+σ, the stored verdict, the distortion and projection uncertainty, and how every parameter moved \
+across the stored versions in σ units (plot and table)."
+)]
 pub struct ReportArgs {
-    /// A station run directory (result.json, observations.json, rig.toml and session/).
-    pub run: PathBuf,
-    /// The HTML file to write (default RUN_DIR/report.html); the plots are also written as PNG into
+    /// A station run directory, or a profile: a profile file, a store's camera folder, or a camera
+    /// identity or folder name in the store.
+    #[arg(value_name = "RUN_DIR|PROFILE")]
+    pub run: String,
+    /// The HTML file to write (default RUN_DIR/report.html for a run,
+    /// ./report-<camera folder>.html for a profile); the plots are also written as PNG into
     /// `<file stem>_plots/` beside it.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Profile store a camera identity is looked up in (not created when missing).
+    #[arg(long, default_value = DEFAULT_STORE)]
+    pub store: PathBuf,
 }
 
 pub fn run(args: ReportArgs, out: Output) -> anyhow::Result<u8> {
-    let html = args
-        .out
-        .clone()
-        .unwrap_or_else(|| args.run.join("report.html"));
-    let path = cubecal::report::write_report(&args.run, &html)?;
+    let target = Path::new(&args.run);
+    let path = if target.join(cubecal::report::run::RESULT).is_file() {
+        let html = args
+            .out
+            .clone()
+            .unwrap_or_else(|| target.join("report.html"));
+        cubecal::report::write_report(target, &html)?
+    } else {
+        let data = ProfileData::locate(&args.run, &args.store)?;
+        let html = args.out.clone().unwrap_or_else(|| data.default_out());
+        cubecal::report::profile::write_profile_report(&data, &html)?
+    };
     print_written(&path, out);
     Ok(cubecal::exit::SUCCESS)
 }

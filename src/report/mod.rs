@@ -21,6 +21,7 @@
 
 pub mod analysis;
 pub mod plots;
+pub mod profile;
 pub mod run;
 pub mod thumbs;
 
@@ -40,9 +41,18 @@ pub use run::{HeldOutPose, RunData, RunResult, ViewOutcome};
 #[derive(Debug, thiserror::Error)]
 pub enum ReportError {
     #[error(
-        "{path} is not a run directory (a folder with result.json, observations.json, rig.toml; profile reports are not available yet)"
+        "{path} is not a run directory (a folder with result.json, observations.json, rig.toml)"
     )]
     NotARunDir { path: PathBuf },
+    /// `cubecal report TARGET` names nothing a report can be made of.
+    #[error(
+        "'{}' is not a run directory (with result.json), a profile document, a camera folder of a profile store (with current.json), nor a camera in the profile store {}",
+        .target.escape_debug(), .store.display()
+    )]
+    NothingToReport { target: String, store: PathBuf },
+    /// Reading a stored profile failed.
+    #[error(transparent)]
+    Profile(#[from] crate::profile::ProfileError),
     #[error("cannot read {path}")]
     Read {
         path: PathBuf,
@@ -90,11 +100,13 @@ impl ReportError {
     pub fn exit_code(&self) -> u8 {
         match self {
             ReportError::NotARunDir { .. }
+            | ReportError::NothingToReport { .. }
             | ReportError::Read { .. }
             | ReportError::Json { .. }
             | ReportError::Invalid { .. }
             | ReportError::Camera { .. } => crate::exit::BAD_INPUT,
             ReportError::Rig(e) => e.exit_code(),
+            ReportError::Profile(e) => e.exit_code(),
             ReportError::Plot { .. } | ReportError::Encode { .. } | ReportError::Write { .. } => {
                 crate::exit::INTERNAL
             }
@@ -311,25 +323,6 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
     )?);
 
     lap("per-view plot", &mut timings);
-    let displacement = analysis::displacement_field(&cam, 64, 48);
-    plots.push(plot(
-        &HeatmapFigure {
-            name: "distortion",
-            caption: format!(
-                "Lens distortion ({}): displacement from the ideal pinhole image",
-                cal.distortion.model
-            ),
-            unit: "px".into(),
-            image_size,
-            field: displacement,
-            lines: analysis::distorted_grid(&cam, 10),
-        },
-        "Colour bands: how far the lens moves each pixel from where an ideal pinhole camera with \
-         the same K would image it. Black: a straight grid of the ideal image as this lens draws it."
-            .to_string(),
-    )?);
-
-    lap("distortion plot", &mut timings);
     let mut notes = Vec::new();
     if !no_pose.is_empty() {
         notes.push(format!(
@@ -338,34 +331,11 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
             no_pose.join(", ")
         ));
     }
-    match analysis::full_covariance(cal) {
-        Ok(cov) => {
-            let d = analysis::working_distance_mm(cal).unwrap_or(1000.0);
-            let field = analysis::uncertainty_field(&cam, &cov, d, 32, 24);
-            plots.push(plot(
-                &HeatmapFigure {
-                    name: "uncertainty",
-                    caption: format!(
-                        "Projection uncertainty σ (px) at {d:.0} mm, from the intrinsics' covariance"
-                    ),
-                    unit: "σ px".into(),
-                    image_size,
-                    field,
-                    lines: Vec::new(),
-                },
-                format!(
-                    "1σ error of projecting a point at {d:.0} mm (the median camera–rig distance) \
-                     along each pixel's ray, from the covariance of the {} estimated intrinsics \
-                     (larger axis of the error ellipse). For intrinsics alone it is the same at \
-                     every distance along the ray; pose uncertainty is not included.",
-                    cal.free_params.len()
-                ),
-            )?);
-        }
-        Err(e) => notes.push(format!("No projection uncertainty plot: {e}.")),
-    }
+    let (lens, lens_notes) = lens_plots(cal, &cam)?;
+    plots.extend(lens);
+    notes.extend(lens_notes);
 
-    lap("uncertainty plot", &mut timings);
+    lap("distortion and uncertainty plots", &mut timings);
     let thumbs = thumbnails(data)?;
     lap("thumbnails", &mut timings);
     let html = html(data, &plots, &thumbs, &stats, &grid, &notes, png_dir);
@@ -380,6 +350,64 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
         coverage: grid,
         timings,
     })
+}
+
+/// The lens plots of a calibration: the distortion (displacement bands with the distorted straight
+/// grid) and the projection uncertainty from the intrinsics' covariance, one colour-band figure each.
+/// The second value says why a plot is missing (no covariance in the calibration).
+pub fn lens_plots(
+    cal: &crate::calib::report::CalibrationReport,
+    cam: &crate::camera::Camera,
+) -> Result<(Vec<Plot>, Vec<String>), ReportError> {
+    let image_size = cal.image_size;
+    let mut plots = vec![plot(
+        &HeatmapFigure {
+            name: "distortion",
+            caption: format!(
+                "Lens distortion ({}): displacement from the ideal pinhole image",
+                cal.distortion.model
+            ),
+            unit: "px".into(),
+            image_size,
+            field: analysis::displacement_field(cam, 64, 48),
+            lines: analysis::distorted_grid(cam, 10),
+        },
+        "Colour bands: how far the lens moves each pixel from where an ideal pinhole camera with \
+         the same K would image it. Black: a straight grid of the ideal image as this lens draws it."
+            .to_string(),
+    )?];
+    let mut notes = Vec::new();
+    match analysis::full_covariance(cal) {
+        Ok(cov) => {
+            let d = analysis::working_distance_mm(cal).unwrap_or(1000.0);
+            plots.push(plot(
+                &HeatmapFigure {
+                    name: "uncertainty",
+                    caption: format!(
+                        "Projection uncertainty σ (px) at {d:.0} mm, from the intrinsics' covariance"
+                    ),
+                    unit: "σ px".into(),
+                    image_size,
+                    field: analysis::uncertainty_field(cam, &cov, d, 32, 24),
+                    lines: Vec::new(),
+                },
+                format!(
+                    "1σ error of projecting a point at {d:.0} mm ({}) along each pixel's ray, from \
+                     the covariance of the {} estimated intrinsics (larger axis of the error \
+                     ellipse). For intrinsics alone it is the same at every distance along the ray; \
+                     pose uncertainty is not included.",
+                    if cal.views.is_empty() {
+                        "no poses stored: a nominal distance"
+                    } else {
+                        "the median camera–rig distance"
+                    },
+                    cal.free_params.len()
+                ),
+            )?);
+        }
+        Err(e) => notes.push(format!("No projection uncertainty plot: {e}.")),
+    }
+    Ok((plots, notes))
 }
 
 fn thumbnails(data: &RunData) -> Result<Vec<Thumb>, ReportError> {
@@ -490,7 +518,7 @@ fn thumbnails(data: &RunData) -> Result<Vec<Thumb>, ReportError> {
 const CSS: &str = "body{font-family:sans-serif;margin:24px;color:#222;max-width:1500px}\
 h1{margin-bottom:4px}h2{margin-top:32px;border-bottom:1px solid #ccc}\
 table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}\
-td.num{text-align:right;font-variant-numeric:tabular-nums}\
+td.num{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap}\
 .pass{color:#1a7f37;font-weight:bold}.fail{color:#c62828;font-weight:bold}\
 .banner{display:inline-block;padding:6px 16px;font-size:22px;color:#fff;border-radius:4px}\
 .banner.pass{background:#1a7f37;color:#fff}.banner.fail{background:#c62828;color:#fff}\
@@ -498,7 +526,8 @@ figure{display:inline-block;vertical-align:top;margin:8px 16px 16px 0;max-width:
 figure svg{max-width:100%;height:auto;border:1px solid #eee}\
 figcaption{font-size:13px;color:#444;max-width:820px}\
 .thumbs{display:flex;flex-wrap:wrap;gap:12px}.thumb{width:400px;font-size:13px}\
-.thumb img{width:400px;border:1px solid #ccc}.note{color:#8a5a00}";
+.thumb img{width:400px;border:1px solid #ccc}.note{color:#8a5a00}\
+table.hist td,table.hist th{white-space:nowrap}table.hist small{color:#555}";
 
 fn fmt_num(x: f64) -> String {
     if !x.is_finite() {
@@ -510,54 +539,47 @@ fn fmt_num(x: f64) -> String {
     }
 }
 
-fn html(
-    data: &RunData,
-    plots: &[Plot],
-    thumbs: &[Thumb],
-    stats: &[analysis::ViewStat],
-    grid: &CoverageGrid,
-    notes: &[String],
-    png_dir: &str,
-) -> String {
-    let r = &data.result;
-    let cal = &r.calibration;
+/// Table rows `<th>key</th><td>value</td>` of a JSON object's fields (strings unquoted); nothing for
+/// anything else.
+fn kv_rows(value: &serde_json::Value) -> String {
     let mut h = String::new();
-    let pass = if r.verdict.pass { "pass" } else { "fail" };
-    let _ = write!(
-        h,
-        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
-         <title>cubecal run report</title><style>{CSS}</style></head><body>\n\
-         <h1>cubecal run report</h1>\n<p>Run directory <code>{}</code>; rig <b>{}</b>.</p>\n\
-         <div class=\"banner {pass}\">{}</div>\n",
-        esc(&data.dir.display().to_string()),
-        esc(&data.rig.name),
-        if r.verdict.pass {
-            "PASS: calibration accepted"
-        } else {
-            "FAIL: calibration rejected"
+    if let serde_json::Value::Object(m) = value {
+        for (k, v) in m {
+            let v = match v {
+                serde_json::Value::String(s) => s.clone(),
+                other => other.to_string(),
+            };
+            let _ = write!(h, "<tr><th>{}</th><td>{}</td></tr>", esc(k), esc(&v));
         }
-    );
-    // Device.
-    h.push_str("<h2>Device</h2>\n<table>");
-    match &r.device {
-        serde_json::Value::Object(m) if !m.is_empty() => {
-            for (k, v) in m {
-                let v = match v {
-                    serde_json::Value::String(s) => s.clone(),
-                    other => other.to_string(),
-                };
-                let _ = write!(h, "<tr><th>{}</th><td>{}</td></tr>", esc(k), esc(&v));
-            }
-        }
-        _ => h.push_str("<tr><td>no device recorded (replayed or synthetic run)</td></tr>"),
     }
-    h.push_str("</table>\n");
-    // Verdict.
-    h.push_str(
+    h
+}
+
+/// The start of a report page: doctype, style and the `<h1>` title.
+fn page_start(title: &str) -> String {
+    format!(
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
+         <title>{t}</title><style>{CSS}</style></head><body>\n<h1>{t}</h1>\n",
+        t = esc(title)
+    )
+}
+
+/// The PASS/FAIL banner of a verdict.
+fn banner(pass: bool) -> String {
+    if pass {
+        "<div class=\"banner pass\">PASS: calibration accepted</div>\n".to_string()
+    } else {
+        "<div class=\"banner fail\">FAIL: calibration rejected</div>\n".to_string()
+    }
+}
+
+/// The verdict section: each check with its value, threshold, result and hint.
+fn verdict_table(verdict: &crate::station::Verdict) -> String {
+    let mut h = String::from(
         "<h2>Verdict</h2>\n<table><tr><th>check</th><th>value</th><th>threshold</th>\
          <th>result</th><th>what to do</th></tr>\n",
     );
-    for c in &r.verdict.checks {
+    for c in &verdict.checks {
         let (cls, word) = if c.pass {
             ("pass", "pass")
         } else {
@@ -574,42 +596,88 @@ fn html(
         );
     }
     h.push_str("</table>\n");
-    // Calibration.
-    let k = cal.camera_matrix;
-    let sd = |n: &str| {
-        cal.std_dev
-            .get(n)
-            .map_or(String::from("fixed"), |s| format!("± {}", fmt_num(*s)))
-    };
-    h.push_str("<h2>Calibration</h2>\n<table><tr><th>parameter</th><th>value</th><th>σ</th></tr>");
-    let mut row = |n: &str, v: f64, s: String| {
+    h
+}
+
+/// Intrinsic parameter names in the order tables show them (`K`, then OpenCV's coefficient order).
+const PARAM_ORDER: [&str; 13] = [
+    "fx", "fy", "cx", "cy", "skew", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
+];
+
+/// The calibration section's table: each intrinsic with its value and σ (`fixed` when not estimated).
+fn parameter_table(cal: &crate::calib::report::CalibrationReport) -> String {
+    let values = crate::profile::intrinsic_values(cal);
+    let mut h = String::from(
+        "<h2>Calibration</h2>\n<table><tr><th>parameter</th><th>value</th><th>σ</th></tr>",
+    );
+    for name in PARAM_ORDER {
+        let Some(v) = values.get(name) else { continue };
+        let sd = cal
+            .std_dev
+            .get(name)
+            .map_or(String::from("fixed"), |s| format!("± {}", fmt_num(*s)));
         let _ = write!(
             h,
-            "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
-            esc(n),
-            fmt_num(v),
-            s
+            "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{sd}</td></tr>",
+            esc(name),
+            fmt_num(*v),
         );
-    };
-    for (n, v) in [
-        ("fx", k[0][0]),
-        ("fy", k[1][1]),
-        ("cx", k[0][2]),
-        ("cy", k[1][2]),
-        ("skew", k[0][1]),
-    ] {
-        row(n, v, sd(n));
     }
-    for (n, v) in ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"]
-        .iter()
-        .zip(&cal.distortion.coefficients)
-    {
-        row(n, *v, sd(n));
+    h.push_str("</table>\n");
+    h
+}
+
+/// The plots, each inline as SVG with its note and a link to its PNG.
+fn plots_section(plots: &[Plot], png_dir: &str) -> String {
+    let mut h = String::from("<h2>Plots</h2>\n");
+    for p in plots {
+        // plotters writes a standalone SVG document; inline it as an element of the page.
+        let svg = p
+            .svg
+            .trim_start_matches("<?xml version=\"1.0\" encoding=\"UTF-8\"?>");
+        let _ = writeln!(
+            h,
+            "<figure id=\"{name}\">{svg}<figcaption>{} <a href=\"{}/{name}.png\">PNG</a></figcaption></figure>",
+            esc(&p.note),
+            esc(png_dir),
+            name = p.name,
+        );
     }
-    let _ = write!(
+    h
+}
+
+fn html(
+    data: &RunData,
+    plots: &[Plot],
+    thumbs: &[Thumb],
+    stats: &[analysis::ViewStat],
+    grid: &CoverageGrid,
+    notes: &[String],
+    png_dir: &str,
+) -> String {
+    let r = &data.result;
+    let cal = &r.calibration;
+    let mut h = page_start("cubecal run report");
+    let _ = writeln!(
         h,
-        "</table>\n<p>Model {}; {} points in {} fitted views; RMS {} px (OpenCV's figure {} px); \
-         noise σ {} px; coverage {} of {} cells; {} ({} iterations).</p>\n",
+        "<p>Run directory <code>{}</code>; rig <b>{}</b>.</p>",
+        esc(&data.dir.display().to_string()),
+        esc(&data.rig.name),
+    );
+    h.push_str(&banner(r.verdict.pass));
+    // Device.
+    h.push_str("<h2>Device</h2>\n<table>");
+    match &r.device {
+        serde_json::Value::Object(m) if !m.is_empty() => h.push_str(&kv_rows(&r.device)),
+        _ => h.push_str("<tr><td>no device recorded (replayed or synthetic run)</td></tr>"),
+    }
+    h.push_str("</table>\n");
+    h.push_str(&verdict_table(&r.verdict));
+    h.push_str(&parameter_table(cal));
+    let _ = writeln!(
+        h,
+        "<p>Model {}; {} points in {} fitted views; RMS {} px (OpenCV's figure {} px); \
+         noise σ {} px; coverage {} of {} cells; {} ({} iterations).</p>",
         esc(&cal.distortion.model),
         cal.n_points,
         cal.views.len(),
@@ -636,21 +704,7 @@ fn html(
     for n in notes {
         let _ = writeln!(h, "<p class=\"note\">{}</p>", esc(n));
     }
-    // Plots.
-    h.push_str("<h2>Plots</h2>\n");
-    for p in plots {
-        // plotters writes a standalone SVG document; inline it as an element of the page.
-        let svg = p
-            .svg
-            .trim_start_matches("<?xml version=\"1.0\" encoding=\"UTF-8\"?>");
-        let _ = writeln!(
-            h,
-            "<figure id=\"{name}\">{svg}<figcaption>{} <a href=\"{}/{name}.png\">PNG</a></figcaption></figure>",
-            esc(&p.note),
-            esc(png_dir),
-            name = p.name,
-        );
-    }
+    h.push_str(&plots_section(plots, png_dir));
     // Views.
     h.push_str(
         "<h2>Poses</h2>\n<table><tr><th>view</th><th>frame</th><th>angle (°)</th><th>status</th>\
@@ -717,29 +771,44 @@ fn write_file(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
     })
 }
 
-/// Write the report of `run_dir` to `out` (HTML) and its plots as PNG into `<out stem>_plots/`
-/// beside it. Returns the HTML path.
-pub fn write_report(run_dir: &Path, out: &Path) -> Result<PathBuf, ReportError> {
-    let data = RunData::load(run_dir)?;
+/// The folder beside `out` the PNG plots go into: `<out stem>_plots`.
+pub fn png_dir_name(out: &Path) -> String {
     let stem = out.file_stem().map_or_else(
         || "report".to_string(),
         |s| s.to_string_lossy().into_owned(),
     );
-    let png_dir_name = format!("{stem}_plots");
-    let report = render_run(&data, &png_dir_name)?;
+    format!("{stem}_plots")
+}
+
+/// Write `html` to `out` and each plot as PNG into `png_dir_name` beside it.
+fn write_outputs(
+    out: &Path,
+    html: &str,
+    plots: &[Plot],
+    png_dir_name: &str,
+) -> Result<(), ReportError> {
     let parent = out
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
-    let png_dir = parent.join(&png_dir_name);
+    let png_dir = parent.join(png_dir_name);
     std::fs::create_dir_all(&png_dir).map_err(|source| ReportError::Write {
         path: png_dir.clone(),
         source,
     })?;
-    for p in &report.plots {
+    for p in plots {
         write_file(&png_dir.join(format!("{}.png", p.name)), &p.png)?;
     }
-    write_file(out, report.html.as_bytes())?;
+    write_file(out, html.as_bytes())
+}
+
+/// Write the report of `run_dir` to `out` (HTML) and its plots as PNG into `<out stem>_plots/`
+/// beside it. Returns the HTML path.
+pub fn write_report(run_dir: &Path, out: &Path) -> Result<PathBuf, ReportError> {
+    let data = RunData::load(run_dir)?;
+    let png_dir_name = png_dir_name(out);
+    let report = render_run(&data, &png_dir_name)?;
+    write_outputs(out, &report.html, &report.plots, &png_dir_name)?;
     tracing::info!(path = %out.display(), plots = report.plots.len(), thumbnails = report.thumbs.len(), "wrote run report");
     Ok(out.to_path_buf())
 }

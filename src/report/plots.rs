@@ -444,6 +444,8 @@ impl Figure for HistogramFigure {
         chart
             .configure_mesh()
             .disable_x_mesh()
+            .light_line_style(WHITE)
+            .bold_line_style(RGBColor(225, 225, 225))
             .x_desc("residual component (px)")
             .y_desc("count")
             .label_style((FONT, 12))
@@ -514,6 +516,8 @@ impl Figure for ViewRmsFigure {
         chart
             .configure_mesh()
             .disable_y_mesh()
+            .light_line_style(WHITE)
+            .bold_line_style(RGBColor(225, 225, 225))
             .y_labels(0)
             .x_desc("RMS of residual components (px)")
             .label_style((FONT, 12))
@@ -671,6 +675,169 @@ impl Figure for HeatmapFigure {
                 (FONT, 12),
             ))?;
         }
+        Ok(geometry)
+    }
+}
+
+/// Colours of parameter series (Tableau 10: distinguishable lines on white).
+pub const SERIES: [RGBColor; 10] = [
+    RGBColor(78, 121, 167),
+    RGBColor(242, 142, 43),
+    RGBColor(225, 87, 89),
+    RGBColor(118, 183, 178),
+    RGBColor(89, 161, 79),
+    RGBColor(237, 201, 72),
+    RGBColor(176, 122, 161),
+    RGBColor(255, 157, 167),
+    RGBColor(156, 117, 95),
+    RGBColor(186, 176, 172),
+];
+
+/// One parameter's history: its name and, per version (oldest first), its offset in σ units, or
+/// `None` where the version cannot be compared (parameter fixed or absent in that version).
+pub type Series = (String, Vec<Option<f64>>);
+
+/// How each intrinsic parameter moved across a camera's profile versions, in σ units: per version a
+/// point per parameter at `Δ/σ`, joined by lines (broken where a version has no value), dashed lines
+/// at `±jump_sigma`, and the versions' dates under the x axis.
+#[derive(Debug, Clone)]
+pub struct HistoryFigure {
+    pub caption: String,
+    /// Label of each version (its date), oldest first; the x axis places version `i` at `i`.
+    pub versions: Vec<String>,
+    pub series: Vec<Series>,
+    /// The store's jump threshold, drawn as dashed lines at `±jump_sigma`.
+    pub jump_sigma: f64,
+}
+
+impl HistoryFigure {
+    /// The y range shown: symmetric, covering every point and the jump threshold with 15 % headroom.
+    pub fn y_max(&self) -> f64 {
+        let finite = |x: &f64| x.is_finite();
+        self.series
+            .iter()
+            .flat_map(|(_, v)| v.iter().flatten().filter(|x| finite(x)).map(|x| x.abs()))
+            .fold(
+                if self.jump_sigma.is_finite() {
+                    self.jump_sigma
+                } else {
+                    1.0
+                },
+                f64::max,
+            )
+            .max(1.0)
+            * 1.15
+    }
+
+    /// The colour of series `i`.
+    pub fn colour(i: usize) -> RGBColor {
+        SERIES[i % SERIES.len()]
+    }
+}
+
+const DATE_AREA: u32 = 54;
+
+impl Figure for HistoryFigure {
+    fn name(&self) -> &'static str {
+        "history"
+    }
+    fn size(&self) -> (u32, u32) {
+        (900, 480)
+    }
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult<Geometry, DB> {
+        root.fill(&WHITE)?;
+        let (_, h) = self.size();
+        let (main, strip) = root.split_vertically(h - 26);
+        let n = self.versions.len().max(1);
+        let (x0, x1) = (-0.5, n as f64 - 0.5);
+        let ymax = self.y_max();
+        let mut chart = ChartBuilder::on(&main)
+            .caption(self.caption.clone(), (FONT, 15))
+            .margin(MARGIN)
+            .margin_right(3 * MARGIN)
+            .x_label_area_size(DATE_AREA)
+            .y_label_area_size(LEFT)
+            .build_cartesian_2d(x0..x1, -ymax..ymax)?;
+        // The x axis is labelled by hand (dates under each version); plotters labels only y.
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .light_line_style(WHITE)
+            .bold_line_style(RGBColor(225, 225, 225))
+            .x_labels(0)
+            .y_desc("Δ/σ")
+            .label_style((FONT, 12))
+            .draw()?;
+        chart.draw_series(std::iter::once(PathElement::new(
+            vec![(x0, 0.0), (x1, 0.0)],
+            GREY.stroke_width(1),
+        )))?;
+        if self.jump_sigma.is_finite() {
+            for s in [-self.jump_sigma, self.jump_sigma] {
+                chart.draw_series(DashedLineSeries::new(
+                    vec![(x0, s), (x1, s)],
+                    6,
+                    4,
+                    OUTLIER.stroke_width(1),
+                ))?;
+            }
+        }
+        for (k, (_, values)) in self.series.iter().enumerate() {
+            let colour = Self::colour(k);
+            // Lines between consecutive versions that both have a value.
+            chart.draw_series(values.windows(2).enumerate().filter_map(|(i, w)| {
+                let (a, b) = (w[0]?, w[1]?);
+                (a.is_finite() && b.is_finite()).then(|| {
+                    PathElement::new(
+                        vec![(i as f64, a), ((i + 1) as f64, b)],
+                        colour.stroke_width(2),
+                    )
+                })
+            }))?;
+            chart.draw_series(values.iter().enumerate().filter_map(|(i, v)| {
+                let v = (*v)?;
+                v.is_finite()
+                    .then(|| Circle::new((i as f64, v), 4, colour.filled()))
+            }))?;
+        }
+        let (px, py) = chart.plotting_area().get_pixel_range();
+        let geometry = Geometry {
+            px_x: (px.start, px.end - 1),
+            px_y: (py.start, py.end - 1),
+            data_x: (x0, x1),
+            data_y: (ymax, -ymax),
+        };
+        // Version labels: "vN" and the date, centred under each version (every k-th when crowded).
+        let every = n.div_ceil(12).max(1);
+        let centred = TextStyle::from((FONT, 12)).pos(plotters::style::text_anchor::Pos::new(
+            plotters::style::text_anchor::HPos::Center,
+            plotters::style::text_anchor::VPos::Top,
+        ));
+        for (i, label) in self.versions.iter().enumerate() {
+            if i % every != 0 && i + 1 != n {
+                continue;
+            }
+            let (x, _) = geometry.to_px(i as f64, 0.0);
+            let y = geometry.px_y.1 + 6;
+            main.draw(&Text::new(
+                format!("v{}", i + 1),
+                (x.round() as i32, y),
+                centred.clone(),
+            ))?;
+            main.draw(&Text::new(
+                label.clone(),
+                (x.round() as i32, y + 16),
+                centred.clone(),
+            ))?;
+        }
+        let mut entries: Vec<(RGBColor, String)> = self
+            .series
+            .iter()
+            .enumerate()
+            .map(|(k, (name, _))| (Self::colour(k), name.clone()))
+            .collect();
+        entries.push((OUTLIER, format!("±{} σ (jump)", self.jump_sigma)));
+        legend(&strip, &entries)?;
         Ok(geometry)
     }
 }

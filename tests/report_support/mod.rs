@@ -264,3 +264,116 @@ pub fn build_run(dir: &Path, kind: Kind, width: u32, height: u32) -> PathBuf {
     .unwrap();
     dir.to_path_buf()
 }
+
+// ---------------------------------------------------------------------------------------------------
+// profiles with history
+
+/// One intrinsic of a profile version: name, value, σ (0: fixed, not estimated).
+pub type Param = (&'static str, f64, f64);
+
+/// A calibration of a 1280×960 Brown5 camera with exactly these parameters (absent ones are 0 and
+/// fixed), a diagonal covariance of the estimated ones, and three views 600 mm away.
+pub fn calibration_with(params: &[Param]) -> CalibrationReport {
+    let get = |n: &str| params.iter().find(|p| p.0 == n).map_or(0.0, |p| p.1);
+    let free: Vec<&Param> = params.iter().filter(|p| p.2 > 0.0).collect();
+    let view = |k: u32| cubecal::calib::report::ViewReport {
+        name: format!("v{k}"),
+        rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        translation: [f64::from(k) * 10.0, 0.0, 600.0],
+        rvec: [0.0; 3],
+        rms_px: 0.1,
+        n_points: 100,
+        outliers: vec![],
+        rotation_std_deg: [0.01; 3],
+        translation_std: [0.1; 3],
+    };
+    CalibrationReport {
+        image_size: [1280, 960],
+        camera_matrix: [
+            [get("fx"), get("skew"), get("cx")],
+            [0.0, get("fy"), get("cy")],
+            [0.0, 0.0, 1.0],
+        ],
+        distortion: cubecal::calib::report::DistortionReport {
+            model: "brown5".into(),
+            coefficients: ["k1", "k2", "p1", "p2", "k3"]
+                .iter()
+                .map(|n| get(n))
+                .collect(),
+        },
+        std_dev: free.iter().map(|p| (p.0.to_string(), p.2)).collect(),
+        free_params: free.iter().map(|p| p.0.to_string()).collect(),
+        covariance: (0..free.len())
+            .map(|i| {
+                (0..free.len())
+                    .map(|j| if i == j { free[i].2 * free[i].2 } else { 0.0 })
+                    .collect()
+            })
+            .collect(),
+        rms_px: 0.1,
+        rms_reprojection_px: 0.1 * 2f64.sqrt(),
+        sigma_px: 0.1,
+        n_points: 300,
+        n_params: free.len() + 18,
+        views: (0..3).map(view).collect(),
+        iterations: 6,
+        termination: "converged".into(),
+        converged: true,
+        init_method: cubecal::calib::init::InitMethod::Dlt,
+    }
+}
+
+/// A passing profile of `identity` with calibration `cal`, created `secs` after 2026-11-01 00:00 UTC.
+pub fn profile_of(identity: &str, cal: CalibrationReport, secs: u64) -> cubecal::profile::Profile {
+    cubecal::profile::Profile {
+        identity: cubecal::profile::Identity {
+            id: identity.to_string(),
+            origin: cubecal::profile::IdentityOrigin::User,
+            device: None,
+        },
+        calibration: cal,
+        verdict: Verdict::from_checks(vec![
+            Check::at_most("rms_px", 0.1, 0.5, || "refocus".into()),
+            Check::at_least("coverage", 0.8, 0.6, || "more corners".into()),
+        ]),
+        controls: vec![],
+        format: None,
+        rig: cubecal::profile::RigRef {
+            name: "cube_outside".into(),
+            sha256: "0".repeat(64),
+        },
+        session: None,
+        software_version: env!("CARGO_PKG_VERSION").into(),
+        created: cubecal::profile::rfc3339_from_unix(1_793_491_200 + secs),
+        change: None,
+    }
+}
+
+/// Commit one profile per entry of `versions` (oldest first, a week apart) for `identity` into the
+/// store at `store_dir`; returns the camera's folder.
+pub fn build_history(store_dir: &Path, identity: &str, versions: &[Vec<Param>]) -> PathBuf {
+    let store = cubecal::profile::Store::open(store_dir).unwrap();
+    let mut folder = None;
+    for (i, params) in versions.iter().enumerate() {
+        let p = profile_of(identity, calibration_with(params), i as u64 * 7 * 86_400);
+        folder = Some(store.commit(&p, &Default::default()).unwrap().folder);
+    }
+    folder.expect("at least one version")
+}
+
+/// The parameters of version `v` of a camera whose focal length drifts by +0.4 px (fx) and +0.25 px
+/// (fy) a version (σ 0.3),
+/// whose principal point jumps by 3 px in x at version 3 (σ 0.25) and whose k1 wanders.
+pub fn drifting_camera(v: usize) -> Vec<Param> {
+    let t = v as f64;
+    vec![
+        ("fx", 1100.0 + 0.4 * t, 0.3),
+        ("fy", 1100.2 + 0.25 * t, 0.3),
+        ("cx", 645.0 + if v >= 2 { 3.0 } else { 0.0 }, 0.25),
+        ("cy", 476.0 + 0.05 * t, 0.25),
+        ("k1", -0.180 + 0.0015 * (t * 1.7).sin(), 0.001),
+        ("k2", 0.060, 0.004),
+        ("p1", 0.0004, 0.0001),
+        ("p2", -0.0003, 0.0001),
+    ]
+}
