@@ -607,7 +607,10 @@ fn profile_history_is_plotted_at_each_versions_distance_in_sigma() {
     let html = &report.html;
     assert!(html.contains("+6.19 σ"), "cx at v3");
     assert!(html.contains(&format!("{:+.2} σ", want[0][1].unwrap())));
-    assert!(html.contains("7.0711 JUMP"), "stored step of v3");
+    assert!(
+        html.contains("7.0711 <span class=\"fail\">JUMP</span>"),
+        "stored step of v3"
+    );
     assert_eq!(html.matches("<tr><td title=").count(), 4);
     // The current version's parameters with σ, and the stored verdict.
     assert!(html.contains(

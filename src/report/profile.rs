@@ -413,7 +413,11 @@ fn history_table(data: &ProfileData, series: &[Series]) -> String {
             Some(c) => format!(
                 "{}{}",
                 fmt_num(c.max_abs_delta_sigma),
-                if c.jump { " JUMP" } else { "" }
+                if c.jump {
+                    " <span class=\"fail\">JUMP</span>"
+                } else {
+                    ""
+                }
             ),
             None => String::from("first"),
         };
@@ -427,7 +431,7 @@ fn history_table(data: &ProfileData, series: &[Series]) -> String {
             if p.verdict.pass { "pass" } else { "fail" },
             if p.verdict.pass { "pass" } else { "FAIL" },
             fmt_num(p.calibration.rms_px),
-            esc(&step)
+            step
         );
         for (name, z) in series {
             let value = values
