@@ -741,3 +741,54 @@ fn profile_reports_through_the_cli_for_every_way_of_naming_a_profile() {
     assert_eq!(out.status.code(), Some(3));
     assert!(String::from_utf8_lossy(&out.stderr).contains("newer"));
 }
+
+#[test]
+fn a_replayed_station_runs_profile_json_and_store_entry_are_reported() {
+    let tmp = tempfile::tempdir().unwrap();
+    let demo = report_support::repo().join("fixtures/sessions/demo");
+    let (run, store) = (tmp.path().join("run"), tmp.path().join("store"));
+    let out = cubecal_in(
+        tmp.path(),
+        &[
+            "calibrate",
+            "--replay",
+            demo.to_str().unwrap(),
+            "--out",
+            run.to_str().unwrap(),
+            "--store",
+            store.to_str().unwrap(),
+        ],
+    );
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // The run's profile.json is a profile document like the store's.
+    let single = tmp.path().join("single.html");
+    let out = cubecal_in(
+        tmp.path(),
+        &[
+            "report",
+            run.join("profile.json").to_str().unwrap(),
+            "--out",
+            single.to_str().unwrap(),
+        ],
+    );
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let html = std::fs::read_to_string(&single).unwrap();
+    assert!(html.contains("demo-camera") && html.contains("No earlier version"));
+    assert_eq!(html.matches("<svg ").count(), 2);
+    let stored = cubecal::profile::read_document(&run.join("profile.json")).unwrap();
+    let (current, _) = cubecal::profile::Store::open(&store)
+        .unwrap()
+        .current("demo-camera")
+        .unwrap();
+    assert_eq!(stored.calibration, current.calibration);
+}

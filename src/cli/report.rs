@@ -10,13 +10,14 @@ use super::profile::DEFAULT_STORE;
 
 #[derive(Debug, clap::Args)]
 #[command(
-    after_help = "TARGET is, in this order: a station run directory (result.json, observations.json, \
+    after_help = "RUN_DIR|PROFILE is, in this order (the first that exists): a station run directory (result.json, observations.json, \
 rig.toml, session/); a profile document file (a run's profile.json; a store's .../current.json \
 stands for its camera folder, history included); a camera folder of a profile store (holding \
 current.json and history/); or a camera identity or folder name in the store given by --store, as \
 `cubecal profile show` takes it. A profile report shows the identity, the current parameters with \
 σ, the stored verdict, the distortion and projection uncertainty, and how every parameter moved \
-across the stored versions in σ units (plot and table)."
+across the stored versions in σ units, (p_v − p_current) / √(σ_v² + σ_current²) as `cubecal \
+profile diff` prints it (plot and table)."
 )]
 pub struct ReportArgs {
     /// A station run directory, or a profile: a profile file, a store's camera folder, or a camera

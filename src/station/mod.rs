@@ -797,7 +797,9 @@ fn write_profile(
         change: None,
     };
     let path = spec.run_dir.join("profile.json");
-    write_json(&path, &profile)?;
+    // The store's document format (with format_version), so that `cubecal profile diff` and
+    // `cubecal report` read a run's profile.json like any stored profile.
+    write_file(&path, &crate::profile::to_document(&profile))?;
     let Some(store_dir) = &spec.config.output.store else {
         return Ok(path);
     };
