@@ -27,7 +27,8 @@
 //! - [`observations`]: the correspondence file format read by `cubecal solve`.
 //! - [`turntable`]: the `Turntable` trait, serial drivers and simulators.
 //! - [`profile`]: per-device profiles — the crash-safe versioned store and the OpenCV/ROS/mrcal exports.
-//! - [`report`]: self-contained HTML run reports with plots (and the same plots as PNG).
+//! - [`report`]: self-contained HTML reports with plots (and the same plots as PNG) of station runs
+//!   and of stored profiles with their history.
 //! - [`station`]: the run — plan, move, capture, detect, solve, judge, write.
 //! - [`exit`]: the process exit codes (an API).
 

@@ -1,5 +1,6 @@
 //! Run reports: one self-contained HTML file a calibration engineer can judge a run from by looking,
-//! plus the same plots as PNG files beside it.
+//! plus the same plots as PNG files beside it. Reports of stored profiles and their history are in
+//! [`profile`]; both share the tables, the lens plots ([`lens_plots`]) and the file writing here.
 //!
 //! The report shows the verdict table and the device; the coverage of the image by accepted corners
 //! (coloured by face, on the coverage grid); the residuals as a magnified vector field and as a
