@@ -14,11 +14,13 @@
 //! ([`crate::turntable::sim::grbl_pair_seen`]). The station, which grabs after "settled" and after
 //! dropping queued frames, therefore never sees the previous pose's picture. While a move runs the
 //! last picture stays on the output (a render per intermediate position would only delay the
-//! final one).
+//! final one). Rendered frames are kept by position: a plan that comes back to where it homed shows
+//! the same picture without rendering it again.
 //!
 //! The output device may not exist yet when the feeder starts (the test loads vivid after starting
 //! the simulator, so that the service udev starts finds its turntable): the feeder waits for it.
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -27,7 +29,7 @@ use std::time::{Duration, Instant};
 
 use super::convert::{PixelFormat, encode_gray};
 use super::synthetic::{AngleCell, SyntheticError, TurntableScene};
-use super::v4l2::{V4l2Output, enable_vivid_loop};
+use super::v4l2::{Negotiated, V4l2Output, enable_vivid_loop};
 use super::{CaptureError, FrameSource};
 use crate::turntable::sim::StageView;
 
@@ -111,6 +113,8 @@ pub struct Feeder {
 
 /// Shortest wait between looks at the stage while nothing needs rendering and the output is not open.
 const POLL: Duration = Duration::from_millis(50);
+/// Rendered frames kept (about 1 MB each at 1280×720 GREY).
+const RENDER_CACHE: usize = 32;
 /// Longest wait for the driver to take a frame.
 const WRITE_TIMEOUT: Duration = Duration::from_secs(5);
 
@@ -231,32 +235,26 @@ fn feed(
         height = n.height,
         "feeding the rendered rig"
     );
-    // (position rendered, its frame, writes of it so far)
+    // (position on the output, its frame, writes of it so far)
     let mut current: Option<(f64, Vec<u8>, u64)> = None;
+    // Frames already rendered, by position (a plan often comes back to 0°, where it homed).
+    let mut rendered: HashMap<u64, Vec<u8>> = HashMap::new();
     let shown_after = u64::from(cfg.buffers.max(2)) + 1;
     while !stop.load(Ordering::Relaxed) {
         let (position, moving) = view.position_and_motion();
         let stale = current.as_ref().is_none_or(|(p, _, _)| *p != position);
         if stale && !moving {
-            let degrees = position * cfg.degrees_per_unit;
-            angle.set(degrees);
-            let start = Instant::now();
-            let frame = scene.grab(WRITE_TIMEOUT)?;
-            let took = start.elapsed();
-            stats.renders.fetch_add(1, Ordering::Relaxed);
-            stats.render_us.fetch_add(
-                u64::try_from(took.as_micros()).unwrap_or(u64::MAX),
-                Ordering::Relaxed,
-            );
-            tracing::info!(degrees, took_s = took.as_secs_f64(), "rendered the rig");
-            let raw = encode_gray(cfg.format, &frame.image, n.stride as usize).ok_or(
-                FeedError::Encode {
-                    format: cfg.format,
-                    width: n.width,
-                    height: n.height,
-                    stride: n.stride,
-                },
-            )?;
+            let raw = match rendered.get(&position.to_bits()) {
+                Some(raw) => raw.clone(),
+                None => {
+                    let raw = render(&mut scene, &angle, position, cfg, n, stats)?;
+                    if rendered.len() >= RENDER_CACHE {
+                        rendered.clear();
+                    }
+                    rendered.insert(position.to_bits(), raw.clone());
+                    raw
+                }
+            };
             current = Some((position, raw, 0));
         }
         match current.as_mut() {
@@ -272,4 +270,32 @@ fn feed(
         }
     }
     Ok(())
+}
+
+/// Render the rig with the stage at `position` (native units) and encode it for the output.
+fn render(
+    scene: &mut TurntableScene,
+    angle: &AngleCell,
+    position: f64,
+    cfg: &FeedConfig,
+    n: Negotiated,
+    stats: &FeedStats,
+) -> Result<Vec<u8>, FeedError> {
+    let degrees = position * cfg.degrees_per_unit;
+    angle.set(degrees);
+    let start = Instant::now();
+    let frame = scene.grab(WRITE_TIMEOUT)?;
+    let took = start.elapsed();
+    stats.renders.fetch_add(1, Ordering::Relaxed);
+    stats.render_us.fetch_add(
+        u64::try_from(took.as_micros()).unwrap_or(u64::MAX),
+        Ordering::Relaxed,
+    );
+    tracing::info!(degrees, took_s = took.as_secs_f64(), "rendered the rig");
+    encode_gray(cfg.format, &frame.image, n.stride as usize).ok_or(FeedError::Encode {
+        format: cfg.format,
+        width: n.width,
+        height: n.height,
+        stride: n.stride,
+    })
 }
