@@ -18,7 +18,7 @@ use std::sync::mpsc;
 use std::thread;
 use std::time::{Duration, Instant};
 
-use cubecal::station::notify::SystemdNotifier;
+use cubecal::station::notify::{ALIVE_EVERY, SystemdNotifier, alive_during};
 use cubecal::station::{Check, Event, EventSink, Verdict};
 
 /// The child's scenario is named in this variable; without it the `child` test refuses to run.
@@ -29,6 +29,10 @@ const WATCHDOG_USEC: u64 = 1_000_000;
 /// How long the pacing scenario emits events, and how long it then stays silent.
 const BUSY: Duration = Duration::from_millis(3000);
 const QUIET: Duration = Duration::from_millis(1500);
+
+/// The long step of the `long_step` scenario, and the bound it overruns.
+const STEP: Duration = Duration::from_millis(4500);
+const STEP_LIMIT: Duration = Duration::from_millis(3000);
 
 /// One datagram as received: arrival time and its `KEY=value` lines.
 #[derive(Debug)]
@@ -232,6 +236,23 @@ fn child() {
             thread::sleep(QUIET);
             sink.stopping("done");
         }
+        "long_step" => {
+            sink.event(&Event::Opened {
+                source: "/dev/video0".into(),
+                width: 640,
+                height: 480,
+                turntable: "none".into(),
+            });
+            // A step without events of its own (a solve, a move waiting for its turntable) that
+            // overruns its bound: pings while within the bound, silence after it.
+            let value = alive_during(&mut sink, STEP_LIMIT, || {
+                thread::sleep(STEP);
+                42
+            });
+            assert_eq!(value, 42, "the step's result comes back");
+            sink.status("step done");
+            sink.stopping("done");
+        }
         other => panic!("unknown scenario {other}"),
     }
     assert_eq!(sink.send_failures(), 0, "every notification was delivered");
@@ -329,6 +350,63 @@ fn watchdog_pings_follow_events_at_most_half_the_interval_apart_and_stop_with_th
     );
 }
 
+/// A long step run through `alive_during` (as the station runs its solves, moves and report) keeps
+/// the watchdog fed — pings at most W/2 apart although the step itself emits nothing — until its
+/// bound; after the bound the pings stop while the step still runs, so a hung step is still caught.
+#[test]
+fn pings_continue_during_a_long_step_until_its_bound() {
+    let (messages, _) = run_child("long_step", Some(WATCHDOG_USEC));
+    let watchdog = Duration::from_micros(WATCHDOG_USEC);
+    let start = messages
+        .iter()
+        .find(|m| m.has("READY=1"))
+        .expect("READY=1")
+        .at;
+    let done = messages
+        .iter()
+        .find(|m| m.has("STATUS=step done"))
+        .expect("the end-of-step marker")
+        .at;
+    let pings: Vec<Duration> = messages
+        .iter()
+        .filter(|m| m.has("WATCHDOG=1"))
+        .map(|m| m.at - start)
+        .collect();
+    let ms: Vec<u128> = pings.iter().map(Duration::as_millis).collect();
+    eprintln!(
+        "pings at ms {ms:?} after READY; step {STEP:?}, bound {STEP_LIMIT:?}, Alive every {ALIVE_EVERY:?}"
+    );
+    assert!(done - start >= STEP, "the step ran {:?}", done - start);
+    // Within the bound: a ping at READY, then one per Alive event, ALIVE_EVERY apart (here W/4 <
+    // ALIVE_EVERY, so the pacer passes every one; with the unit's W = 30 s, ALIVE_EVERY ≤ W/4 keeps
+    // the gaps under W/2).
+    let within: Vec<Duration> = pings.iter().copied().filter(|p| *p <= STEP_LIMIT).collect();
+    assert!(
+        within.len() >= (STEP_LIMIT.as_millis() / ALIVE_EVERY.as_millis()) as usize,
+        "pings within the bound: {ms:?}"
+    );
+    let mut previous = Duration::ZERO;
+    for p in &within {
+        assert!(
+            *p - previous <= ALIVE_EVERY + Duration::from_millis(150),
+            "gap {:?} before the ping at {p:?} (pings {ms:?})",
+            *p - previous
+        );
+        previous = *p;
+    }
+    // Past the bound: silence until the step ends.
+    assert!(
+        pings
+            .iter()
+            .all(|p| *p <= STEP_LIMIT + Duration::from_millis(150)),
+        "a ping after the step's bound: {ms:?}"
+    );
+    assert!(
+        STEP - STEP_LIMIT > watchdog,
+        "the silence after the bound is longer than the watchdog interval, so systemd would act"
+    );
+}
+
 /// Every file under `dir` with its bytes (sorted by path).
 fn tree(dir: &std::path::Path) -> Vec<(PathBuf, Vec<u8>)> {
     let mut out = Vec::new();
@@ -351,23 +429,45 @@ fn tree(dir: &std::path::Path) -> Vec<(PathBuf, Vec<u8>)> {
 /// The real `cubecal serve` (synthetic camera in front of the GRBL simulator on a pty), stopped by
 /// SIGTERM mid-run as systemd stops a unit: READY=1 came first, watchdog pings came from the run,
 /// STOPPING=1 comes at once, the process exits with 130 within 5 s, the session is closed and marked
-/// incomplete, no profile is written and the profile store is left byte-identical.
+/// incomplete, no profile is written and the profile store — holding a previous, passing profile of
+/// the same camera from a real run — is left byte-identical.
 #[test]
 fn sigterm_mid_run_stops_within_5_s_without_touching_profiles() {
     let listener = Listener::new();
     let dir = tempfile::tempdir().unwrap();
     let run_dir = dir.path().join("run");
     let store = dir.path().join("store");
-    // A previous profile of this camera (whatever the store's layout: every byte must stay).
-    std::fs::create_dir_all(store.join("demo-camera")).unwrap();
-    std::fs::write(
-        store.join("demo-camera").join("profile.json"),
-        br#"{"previous": true, "fx": 1100.25}"#,
-    )
-    .unwrap();
-    let before = tree(&store);
     let config = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/station.toml");
     let quoted = |p: &std::path::Path| format!("\"{}\"", p.display());
+    // A previous, passing profile of this camera in the store, made by a real (short) run.
+    let first = Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args([
+            "calibrate",
+            "--config",
+            config,
+            "--device-id",
+            "demo-camera",
+        ])
+        .args(["--poses", "6", "--set", "qa.min_views=4"])
+        .arg("--out")
+        .arg(dir.path().join("first"))
+        .arg("--store")
+        .arg(&store)
+        .output()
+        .unwrap();
+    assert!(
+        first.status.success(),
+        "the first run passes: {}",
+        String::from_utf8_lossy(&first.stdout)
+    );
+    let before = tree(&store);
+    assert!(
+        before.iter().any(
+            |(p, _)| p.ends_with("current.json") && p.to_string_lossy().contains("demo-camera")
+        ),
+        "the store holds demo-camera's current profile: {:?}",
+        before.iter().map(|(p, _)| p).collect::<Vec<_>>()
+    );
     let mut child = Command::new(env!("CARGO_BIN_EXE_cubecal"))
         .args(["serve", "--device", "/dev/null", "--config", config])
         .args(["--set", "camera.source=\"synthetic\""])

@@ -17,6 +17,7 @@
 use std::time::Duration;
 
 pub mod convert;
+pub mod feed;
 pub mod images;
 pub mod session;
 pub mod synthetic;

@@ -533,3 +533,28 @@ impl V4l2Output {
         Ok(())
     }
 }
+
+/// Turn on vivid's output→capture loop on its capture node `path`: "Loop Video" on and "OSD Text
+/// Mode" None (otherwise vivid draws text over the looped image). Frames written to the paired output
+/// node then come back on this node when both use the same size and format (tests/vm/, and
+/// /work/shared/reference/v4l2-vm/README.md for the measured recipe).
+pub fn enable_vivid_loop(path: &Path) -> Result<(), CaptureError> {
+    let (name, dev, _) = discover::open_device(path)?;
+    let controls = list_controls(&dev, &name)?;
+    for (control, value) in [("Loop Video", 1), ("OSD Text Mode", 2)] {
+        let info = controls.iter().find(|c| c.name == control).ok_or_else(|| {
+            CaptureError::Unsupported {
+                device: name.clone(),
+                reason: format!("no '{control}' control: not a vivid capture node"),
+            }
+        })?;
+        let set = set_control(&dev, &name, info, value)?;
+        if set.accepted != value {
+            return Err(CaptureError::Unsupported {
+                device: name.clone(),
+                reason: format!("'{control}' set to {value} reads back {}", set.accepted),
+            });
+        }
+    }
+    Ok(())
+}

@@ -238,6 +238,9 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
         if let Some(e) = cause.downcast_ref::<cubecal::station::StationError>() {
             return e.exit_code();
         }
+        if let Some(e) = cause.downcast_ref::<cubecal::capture::feed::FeedError>() {
+            return e.exit_code();
+        }
         if let Some(e) = cause.downcast_ref::<cubecal::station::config::ConfigError>() {
             return e.exit_code();
         }

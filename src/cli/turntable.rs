@@ -17,7 +17,14 @@ use cubecal::turntable::sim::{self, Fault, GrblSim, SimConfig, ZaberSim};
 use cubecal::turntable::zaber::{X_RSW60A_MICROSTEPS_PER_DEGREE, ZaberConfig, ZaberTurntable};
 use cubecal::turntable::{DEFAULT_RETRIES, Degrees, Turntable, TurntableError};
 
-use super::Output;
+use cubecal::capture::convert::PixelFormat;
+use cubecal::capture::feed::{FeedConfig, Feeder};
+use cubecal::capture::synthetic::{AngleCell, TurntableScene, default_view};
+use cubecal::turntable::sim::StageView;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use super::{Output, UsageError};
 
 #[derive(Debug, Subcommand)]
 pub enum TurntableCommand {
@@ -139,8 +146,34 @@ pub struct SimulateArgs {
     /// Inject a fault on the first move command (lost-steps: every move ends 0.5° past its target).
     #[arg(long, value_enum)]
     fault: Option<FaultArg>,
+    /// Also make PATH a symbolic link to the pseudo-terminal (replacing an existing link), e.g. the
+    /// station service's port /dev/cubecal-turntable; removed on exit.
+    #[arg(long, value_name = "PATH")]
+    link: Option<std::path::PathBuf>,
     #[command(flatten)]
     drive: DriveArgs,
+    #[command(flatten)]
+    feed: FeedArgs,
+}
+
+/// A camera for the simulated table: the rig rendered at the simulator's angle, written to a V4L2
+/// output device (cubecal::capture::feed; GRBL only).
+#[derive(Debug, Args)]
+pub struct FeedArgs {
+    /// V4L2 output node to write the rendered rig to (e.g. vivid's HDMI output, looped into its
+    /// capture node); waits for the node to appear.
+    #[arg(long, value_name = "DEVICE", requires = "station_config")]
+    feed: Option<std::path::PathBuf>,
+    /// Station config whose [synthetic] camera, [rig] and camera.fourcc the feeder renders with (the
+    /// station reading the capture node must use the same config).
+    #[arg(long, value_name = "CONFIG", requires = "feed")]
+    station_config: Option<std::path::PathBuf>,
+    /// A vivid capture node to switch to looping the output (Loop Video on, OSD text off).
+    #[arg(long, value_name = "DEVICE", requires = "feed")]
+    vivid_loop: Option<std::path::PathBuf>,
+    /// How long to wait for the output node (and the --vivid-loop node) to appear, seconds.
+    #[arg(long, default_value_t = 300)]
+    feed_wait_s: u64,
 }
 
 pub fn run(cmd: TurntableCommand, out: Output) -> anyhow::Result<u8> {
@@ -332,14 +365,23 @@ fn simulate(args: SimulateArgs, out: Output) -> anyhow::Result<()> {
         accel: args.accel_deg_s2 * per_degree.abs(),
         fault,
     };
+    let grbl = GrblSim {
+        axis: d.axis,
+        homing: d.homing,
+    };
+    let feeding = match (&args.feed.feed, args.protocol) {
+        (Some(_), SimProtocol::Zaber) => {
+            return Err(UsageError("--feed works with --protocol grbl only".into()).into());
+        }
+        (Some(output), SimProtocol::Grbl) => Some(feed_setup(&args.feed, output, d)?),
+        (None, _) => None,
+    };
+    let view = feeding.as_ref().map(|f| f.view.clone());
     let (slave, handle) = match args.protocol {
-        SimProtocol::Grbl => sim::grbl_pair(
-            config,
-            GrblSim {
-                axis: d.axis,
-                homing: d.homing,
-            },
-        )?,
+        SimProtocol::Grbl => match view {
+            Some(view) => sim::grbl_pair_seen(config, grbl, view)?,
+            None => sim::grbl_pair(config, grbl)?,
+        },
         SimProtocol::Zaber => sim::zaber_pair(
             config,
             ZaberSim {
@@ -351,28 +393,155 @@ fn simulate(args: SimulateArgs, out: Output) -> anyhow::Result<()> {
     };
     // Keep the slave end open for as long as we serve: with no slave open, the master reads EIO.
     let path = slave.name().context("the pseudo-terminal has no path")?;
+    if let Some(link) = &args.link {
+        replace_link(&path, link)?;
+    }
+    let shown_port = args
+        .link
+        .as_ref()
+        .map(|l| l.display().to_string())
+        .unwrap_or_else(|| path.clone());
     let protocol = match args.protocol {
         SimProtocol::Grbl => "grbl",
         SimProtocol::Zaber => "zaber",
     };
+    let feeder = match feeding {
+        Some(f) => Some(Feeder::spawn(f.scene, f.angle, f.view, f.config)?),
+        None => None,
+    };
     if out.json {
         outln!(
             "{}",
-            serde_json::json!({ "protocol": protocol, "port": path })
+            serde_json::json!({ "protocol": protocol, "port": path, "link": args.link, "feed": args.feed.feed })
         )?;
     } else {
         outln!("{protocol} simulator on {path}")?;
+        if let Some(output) = &args.feed.feed {
+            outln!("feeding the rendered rig to {}", output.display())?;
+        }
         outln!(
-            "try: cubecal turntable probe --protocol {protocol} --port {path}  (Ctrl-C to stop)"
+            "try: cubecal turntable probe --protocol {protocol} --port {shown_port}  (Ctrl-C to stop)"
         )?;
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register(sig, Arc::clone(&stop))
+            .context("installing the signal handler")?;
     }
     let until = args
         .seconds
         .map(|s| Instant::now() + Duration::from_secs(s));
-    while handle.is_running() && until.is_none_or(|u| Instant::now() < u) {
+    while handle.is_running()
+        && feeder.as_ref().is_none_or(Feeder::is_running)
+        && !stop.load(Ordering::Relaxed)
+        && until.is_none_or(|u| Instant::now() < u)
+    {
         std::thread::sleep(Duration::from_millis(50));
     }
+    let fed = feeder.map(|f| {
+        tracing::info!(
+            renders = f.stats().renders(),
+            writes = f.stats().writes(),
+            render_s = f.stats().render_time().as_secs_f64(),
+            "feeder stopping"
+        );
+        f.stop()
+    });
     handle.stop();
     drop(slave);
+    if let Some(link) = &args.link {
+        let _ = std::fs::remove_file(link);
+    }
+    if let Some(result) = fed {
+        result.context("the feeder stopped")?;
+    }
     Ok(())
+}
+
+/// What the feeder needs, prepared before the simulator starts.
+struct Feeding {
+    scene: TurntableScene,
+    angle: AngleCell,
+    view: StageView,
+    config: FeedConfig,
+}
+
+/// The scene of the station config: its rig, its synthetic camera in the default view, and the capture
+/// format the station asks for (vivid loops only identical formats).
+fn feed_setup(args: &FeedArgs, output: &std::path::Path, d: &DriveArgs) -> anyhow::Result<Feeding> {
+    let station_config = args
+        .station_config
+        .clone()
+        .ok_or_else(|| UsageError("--feed needs --station-config".into()))?;
+    let prepared = super::calibrate::prepare(&super::calibrate::CalibrateArgs {
+        config: Some(station_config.clone()),
+        device: None,
+        replay: None,
+        images: Vec::new(),
+        synthetic: false,
+        turntable: None,
+        rig: None,
+        store: None,
+        out: None,
+        poses: None,
+        sweep_deg: None,
+        device_id: None,
+        // The feeder is this config's synthetic camera: its camera.device (the capture node the
+        // station reads) is not needed here.
+        set: vec!["camera.source=\"synthetic\"".into()],
+    })?;
+    let cfg = &prepared.cfg;
+    let fourcc = cfg.camera.fourcc.as_deref().ok_or_else(|| {
+        UsageError(format!(
+            "{}: --feed needs camera.fourcc, so that the station captures in the format the feeder writes",
+            station_config.display()
+        ))
+    })?;
+    let format = <[u8; 4]>::try_from(fourcc.as_bytes())
+        .ok()
+        .and_then(PixelFormat::from_fourcc)
+        .ok_or_else(|| {
+            UsageError(format!(
+                "camera.fourcc '{fourcc}' is not a format cubecal converts"
+            ))
+        })?;
+    let camera = cfg.synthetic.camera();
+    let angle = AngleCell::default();
+    let base = default_view(&prepared.rig, &camera);
+    let scene = TurntableScene::new(
+        prepared.rig.clone(),
+        camera,
+        base,
+        cfg.synthetic.settings(),
+        angle.clone(),
+    )?;
+    Ok(Feeding {
+        scene,
+        angle,
+        view: StageView::default(),
+        config: FeedConfig {
+            output: output.to_path_buf(),
+            format,
+            degrees_per_unit: d.degrees_per_unit,
+            vivid_loop: args.vivid_loop.clone(),
+            buffers: 4,
+            wait_for_device: Duration::from_secs(args.feed_wait_s),
+        },
+    })
+}
+
+/// Point `link` at `target`, replacing an existing link (never a regular file or a device node).
+fn replace_link(target: &str, link: &std::path::Path) -> anyhow::Result<()> {
+    if let Ok(meta) = std::fs::symlink_metadata(link) {
+        if !meta.file_type().is_symlink() {
+            return Err(UsageError(format!(
+                "--link {}: exists and is not a symbolic link",
+                link.display()
+            ))
+            .into());
+        }
+        std::fs::remove_file(link).with_context(|| format!("removing {}", link.display()))?;
+    }
+    std::os::unix::fs::symlink(target, link)
+        .with_context(|| format!("linking {} to {target}", link.display()))
 }

@@ -111,6 +111,8 @@ pub struct TurntableSection {
     pub degrees_per_unit: f64,
     pub microsteps_per_degree: f64,
     pub move_timeout_s: u64,
+    /// Longest wait for one reply of a serial turntable (raise it for slow links or emulation).
+    pub reply_timeout_ms: u64,
 }
 
 impl Default for TurntableSection {
@@ -122,6 +124,7 @@ impl Default for TurntableSection {
             degrees_per_unit: 0.5,
             microsteps_per_degree: crate::turntable::zaber::X_RSW60A_MICROSTEPS_PER_DEGREE,
             move_timeout_s: 60,
+            reply_timeout_ms: crate::turntable::DEFAULT_EXCHANGE_TIMEOUT.as_millis() as u64,
         }
     }
 }
@@ -473,6 +476,9 @@ impl StationConfig {
         positive("turntable.microsteps_per_degree", t.microsteps_per_degree)?;
         if t.move_timeout_s == 0 {
             return Err(bad("turntable.move_timeout_s", "must be positive".into()));
+        }
+        if t.reply_timeout_ms == 0 {
+            return Err(bad("turntable.reply_timeout_ms", "must be positive".into()));
         }
         let p = &self.plan;
         if p.poses == 0 || p.poses > 1000 {

@@ -95,12 +95,15 @@ pub fn open_turntable(
 ) -> Result<OpenedTurntable, StationError> {
     let t = &cfg.turntable;
     let move_timeout = Duration::from_secs(t.move_timeout_s);
+    let exchange_timeout = Duration::from_millis(t.reply_timeout_ms);
     let grbl_config = GrblConfig {
+        exchange_timeout,
         move_timeout,
         home_timeout: move_timeout * 2,
         ..GrblConfig::new(Axis::A, t.degrees_per_unit)
     };
     let zaber_config = ZaberConfig {
+        exchange_timeout,
         move_timeout,
         home_timeout: move_timeout * 2,
         ..ZaberConfig::new(t.microsteps_per_degree)

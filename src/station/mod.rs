@@ -119,6 +119,9 @@ impl StationError {
     }
 }
 
+/// Longest a solve or the report may take before the station stops pinging the watchdog for it.
+const SOLVE_LIMIT: Duration = Duration::from_secs(600);
+
 /// Why a view was accepted or not (result.json `views`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ViewRecord {
@@ -316,8 +319,9 @@ pub fn run(
         verdict: result.verdict.clone(),
     });
     // The report is for people: a run whose report cannot be drawn is still a run.
-    sink.event(&Event::Alive);
-    if let Err(e) = crate::report::write_run_report(run_dir) {
+    if let Err(e) = notify::alive_during(sink, SOLVE_LIMIT, || {
+        crate::report::write_run_report(run_dir)
+    }) {
         tracing::warn!(error = %e, "could not write the run's report.html");
     }
     Ok(result)
@@ -342,8 +346,11 @@ fn capture_poses(
     let mut coverage = Coverage::new(info.width, info.height, cfg.qa.coverage_grid);
     let mut out = Vec::with_capacity(total);
     let moving = matches!(hw.poses, Poses::Angles(_));
+    // Homing gets twice the move timeout (hardware::open_turntable); past that, let the watchdog see.
+    let move_limit =
+        Duration::from_secs(cfg.turntable.move_timeout_s) * 2 + Duration::from_secs(10);
     if moving {
-        let home = hw.turntable.home()?;
+        let home = notify::alive_during(sink, move_limit, || hw.turntable.home())?;
         if let Some(cell) = &hw.angle {
             cell.set(home.0);
         }
@@ -372,7 +379,8 @@ fn capture_poses(
                 index,
                 angle_deg: target,
             });
-            let settled = hw.turntable.move_to(Degrees::checked(target)?)?;
+            let target = Degrees::checked(target)?;
+            let settled = notify::alive_during(sink, move_limit, || hw.turntable.move_to(target))?;
             if let Some(cell) = &hw.angle {
                 cell.set(settled.0);
             }
@@ -674,7 +682,9 @@ fn solve_and_judge(
         points: fit.iter().map(|v| v.points.len()).sum(),
     });
     let mut opts = cfg.solve_options("station config")?;
-    let mut cal = match crate::calib::solve(&fit, image_size, &opts) {
+    let mut cal = match notify::alive_during(sink, SOLVE_LIMIT, || {
+        crate::calib::solve(&fit, image_size, &opts)
+    }) {
         Ok(c) => c,
         Err(e) => {
             result.solve_error = Some(e.to_string());
@@ -688,7 +698,9 @@ fn solve_and_judge(
         let k3 = cal.camera.params[idx::K3];
         if cfg.solve.fix_undetermined_k3 && cal.estimated[idx::K3] && k3_sd > k3.abs().max(0.1) {
             opts.fix.k3 = true;
-            match crate::calib::solve(&fit, image_size, &opts) {
+            match notify::alive_during(sink, SOLVE_LIMIT, || {
+                crate::calib::solve(&fit, image_size, &opts)
+            }) {
                 Ok(c) => {
                     notes.push(format!(
                         "k3 fixed at 0: these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}); add poses with the rig near the image corners to estimate it"

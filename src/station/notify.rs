@@ -6,10 +6,13 @@
 //! - `STATUS=…` for every station event except [`Event::Alive`] (what `systemctl status` shows: the
 //!   pose being worked on, why a view was rejected, the coverage, the verdict with every check);
 //! - `WATCHDOG=1` when the service manager asked for pings (`WATCHDOG_USEC`, set by `WatchdogSec=`),
-//!   driven **only** by the station's own events. No timer thread pings on the station's behalf: if the
-//!   camera or the turntable stalls the loop, the events stop, the pings stop, and systemd kills and
-//!   restarts the unit. [`Event::Alive`] exists so that the loop can keep pinging while it legitimately
-//!   waits on hardware;
+//!   driven **only** by the station's own events. No free-running timer pings on the station's behalf:
+//!   if the camera or the turntable stalls the loop, the events stop, the pings stop, and systemd kills
+//!   and restarts the unit. [`Event::Alive`] exists so that the loop can keep pinging while it
+//!   legitimately waits: on hardware between frames, and during the steps that take long without an
+//!   event (a turntable move or homing, the solve, drawing the report), which the station runs through
+//!   [`alive_during`]: the step runs on a worker thread while the station's thread emits `Alive` —
+//!   for at most the step's own bound, so a step that hangs past it still stops the pings;
 //! - `STOPPING=1` from [`SystemdNotifier::stopping`] when the service shuts down (SIGTERM or the end
 //!   of a run).
 //!
@@ -18,7 +21,8 @@
 //! ping ([`WatchdogPacer`]). Events arrive all the time during a run (several per pose, `Alive` while
 //! waiting), so this keeps the datagrams few while the gap between two pings stays at most
 //! `W/4 + (largest gap between events)`: at most `W/2`, as `sd_watchdog_enabled(3)` recommends, as
-//! long as the station emits an event at least every `W/4` (7.5 s with the unit's `WatchdogSec=30`).
+//! long as the station emits an event at least every `W/4` (7.5 s with the unit's `WatchdogSec=30`;
+//! [`alive_during`] emits one every [`ALIVE_EVERY`]).
 //! The first event always pings.
 //!
 //! # Outside systemd
@@ -26,12 +30,46 @@
 //! when `cubecal serve` runs from a terminal. A failing send (socket gone, permission) is logged once
 //! with `tracing::warn!` and counted ([`SystemdNotifier::send_failures`]); it never stops a run.
 
+use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use sd_notify::NotifyState;
 
 use super::event::{Event, EventSink};
 use super::verdict::Verdict;
+
+/// How often [`alive_during`] emits [`Event::Alive`] while its step runs.
+pub const ALIVE_EVERY: Duration = Duration::from_secs(1);
+
+/// Run `work` (a long step without events of its own: a move, a solve) on a worker thread while this
+/// thread emits [`Event::Alive`] to `sink` every [`ALIVE_EVERY`] — for at most `limit`: a step still
+/// running after its bound is stuck, and the silence lets the watchdog say so. Returns `work`'s result
+/// (a panic in `work` is resumed here).
+pub fn alive_during<T: Send>(
+    sink: &mut dyn EventSink,
+    limit: Duration,
+    work: impl FnOnce() -> T + Send,
+) -> T {
+    let start = Instant::now();
+    std::thread::scope(|scope| {
+        let (done_tx, done_rx) = mpsc::channel::<()>();
+        let worker = scope.spawn(move || {
+            let result = work();
+            // The receiver lives until the worker is joined below.
+            let _ = done_tx.send(());
+            result
+        });
+        while let Err(mpsc::RecvTimeoutError::Timeout) = done_rx.recv_timeout(ALIVE_EVERY) {
+            if start.elapsed() < limit {
+                sink.event(&Event::Alive);
+            }
+        }
+        match worker.join() {
+            Ok(result) => result,
+            Err(panic) => std::panic::resume_unwind(panic),
+        }
+    })
+}
 
 /// Decides when a watchdog ping is due: at the first event, then at the first event at least
 /// `interval / 4` after the previous ping.

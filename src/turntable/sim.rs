@@ -11,11 +11,17 @@
 //!
 //! A simulator stops when its [`SimHandle`] is dropped (or [`SimHandle::stop`]ped): a stop flag is
 //! checked every [`SIM_TICK`].
+//!
+//! A GRBL simulator can also be *seen* ([`grbl_pair_seen`]): it publishes its position to a
+//! [`StageView`] at every tick, and a move (or homing cycle) is reported finished only once the
+//! view says a picture of the table at its final position is on screen. A real camera sees the table
+//! the moment it stops; a feeder that renders the scene ([`crate::capture::feed`]) needs time, and
+//! without this gate the station would grab the previous pose's picture after "settled".
 
 use std::fmt::Write as _;
 use std::io::{Read, Write};
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -158,6 +164,58 @@ impl Drop for SimHandle {
     }
 }
 
+/// What a camera sees of a simulated stage (see the module doc): the position the simulator publishes
+/// every tick (native units), and the position whose picture a feeder has on screen. Cloning shares it.
+#[derive(Debug, Clone, Default)]
+pub struct StageView(Arc<Mutex<ViewState>>);
+
+#[derive(Debug, Default)]
+struct ViewState {
+    position: f64,
+    moving: bool,
+    shown: Option<f64>,
+}
+
+impl StageView {
+    fn lock(&self) -> std::sync::MutexGuard<'_, ViewState> {
+        // The state is two numbers: a panicked holder cannot leave it inconsistent.
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// The stage's position now (native units: GRBL axis units).
+    pub fn position(&self) -> f64 {
+        self.lock().position
+    }
+
+    /// The stage's position now and whether it is moving (a move or homing cycle under way).
+    pub fn position_and_motion(&self) -> (f64, bool) {
+        let s = self.lock();
+        (s.position, s.moving)
+    }
+
+    /// A picture of the stage at `position` (a value read from [`StageView::position`]) is on screen.
+    pub fn set_shown(&self, position: f64) {
+        self.lock().shown = Some(position);
+    }
+
+    /// The position whose picture is on screen, if any.
+    pub fn shown(&self) -> Option<f64> {
+        self.lock().shown
+    }
+
+    fn publish(&self, position: f64, moving: bool) {
+        let mut s = self.lock();
+        s.position = position;
+        s.moving = moving;
+    }
+
+    fn shows(&self, position: f64) -> bool {
+        self.lock().shown == Some(position)
+    }
+}
+
 /// What a protocol machine does with bytes and time.
 trait Machine: Send + 'static {
     /// Handle one received byte, appending any reply to `out`.
@@ -229,6 +287,19 @@ pub fn grbl_pair(config: SimConfig, grbl: GrblSim) -> Result<(TTYPort, SimHandle
         slave,
         spawn(master, GrblMachine::new(config, grbl), "grbl")?,
     ))
+}
+
+/// [`grbl_pair`] for a simulator that a camera sees through `view`: moves finish only once the view
+/// shows the final position (see the module doc).
+pub fn grbl_pair_seen(
+    config: SimConfig,
+    grbl: GrblSim,
+    view: StageView,
+) -> Result<(TTYPort, SimHandle), TurntableError> {
+    let (master, slave) = pty_pair()?;
+    let mut machine = GrblMachine::new(config, grbl);
+    machine.view = Some(view);
+    Ok((slave, spawn(master, machine, "grbl")?))
 }
 
 /// Create a pty pair and serve a Zaber ASCII simulator on its master end (see [`grbl_pair`]).
@@ -346,6 +417,10 @@ struct GrblMachine {
     overflow: bool,
     reports: u32,
     faults: FaultState,
+    /// The camera's view of the stage, when a feeder renders it ([`grbl_pair_seen`]).
+    view: Option<StageView>,
+    /// Motion ended at `pos`; the state stays Run (or Home) until the view shows `pos`.
+    awaiting_view: bool,
 }
 
 impl GrblMachine {
@@ -366,6 +441,8 @@ impl GrblMachine {
             overflow: false,
             reports: 0,
             faults: FaultState::new(cfg.fault),
+            view: None,
+            awaiting_view: false,
         }
     }
 
@@ -374,6 +451,15 @@ impl GrblMachine {
             Some(m) => m.traj.position_at(now.saturating_duration_since(m.t0)),
             None => self.pos,
         }
+    }
+
+    /// End a move or homing cycle at `pos`: `ok` for homing, then Idle.
+    fn finish_motion(&mut self, out: &mut Vec<u8>) {
+        self.awaiting_view = false;
+        if self.state == GState::Home {
+            self.reply(b"ok\r\n", out);
+        }
+        self.state = GState::Idle;
     }
 
     fn status(&mut self, now: Instant, out: &mut Vec<u8>) {
@@ -405,6 +491,7 @@ impl GrblMachine {
         let from = self.current(now);
         let traj = Trapezoid::new(from, target, self.cfg.speed, self.cfg.accel);
         self.pos = from;
+        self.awaiting_view = false;
         let fault_at = self.faults.on_move(&traj, now);
         self.motion = Some(Motion {
             traj,
@@ -442,6 +529,7 @@ impl GrblMachine {
                     // `ok` comes when the cycle ends (in tick).
                     let from = self.current(now);
                     let traj = Trapezoid::new(from, 0.0, self.cfg.speed, self.cfg.accel);
+                    self.awaiting_view = false;
                     self.motion = Some(Motion {
                         traj,
                         t0: now,
@@ -541,6 +629,7 @@ impl Machine for GrblMachine {
                 if self.state == GState::Run {
                     self.pos = self.current(now);
                     self.motion = None;
+                    self.awaiting_view = false;
                     self.state = GState::Hold;
                 }
             }
@@ -552,6 +641,7 @@ impl Machine for GrblMachine {
             SOFT_RESET => {
                 self.line.clear();
                 self.pos = self.current(now);
+                self.awaiting_view = false;
                 if matches!(self.state, GState::Run | GState::Home) {
                     self.motion = None;
                     self.state = GState::Alarm;
@@ -577,6 +667,15 @@ impl Machine for GrblMachine {
     }
 
     fn tick(&mut self, now: Instant, out: &mut Vec<u8>) {
+        if let Some(view) = &self.view {
+            view.publish(self.current(now), self.motion.is_some());
+        }
+        if self.awaiting_view {
+            if self.view.as_ref().is_none_or(|v| v.shows(self.pos)) {
+                self.finish_motion(out);
+            }
+            return;
+        }
         let Some(m) = &self.motion else { return };
         if m.fault_at.is_some_and(|t| now >= t) {
             self.pos = self.current(now);
@@ -588,10 +687,13 @@ impl Machine for GrblMachine {
         if now.saturating_duration_since(m.t0) >= m.traj.duration() {
             self.pos = m.traj.target;
             self.motion = None;
-            if self.state == GState::Home {
-                self.reply(b"ok\r\n", out);
+            match &self.view {
+                Some(view) if !view.shows(self.pos) => {
+                    view.publish(self.pos, false);
+                    self.awaiting_view = true;
+                }
+                _ => self.finish_motion(out),
             }
-            self.state = GState::Idle;
         }
     }
 

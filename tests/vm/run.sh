@@ -31,6 +31,8 @@ T0=$SECONDS
 log() { echo "[vm-test +$((SECONDS - T0))s] $*" >&2; }
 die() { log "SETUP ERROR: $*"; exit 2; }
 timed() { local s=$SECONDS; "$@"; log "step '$1' took $((SECONDS - s)) s"; }
+# shellcheck source=tests/vm/qemu.sh
+. "$HERE/qemu.sh"
 
 PKGS="qemu-system-x86 busybox-static cpio kmod xz-utils libclang-dev libc6-dev"
 
@@ -126,18 +128,11 @@ build() {
 
 boot() {
   [ -n "${KVER:-}" ] || KVER=$(cat "$WORK/kver" 2>/dev/null) || die "run 'prepare' first"
-  local K=$WORK/kernel-$KVER cpu=max s=$SECONDS rc
-  [ "$ACCEL" = kvm ] && cpu=host
+  local s=$SECONDS rc
   [ -x "$WORK/share/run.sh" ] || die "run 'build' first"
-  rm -f "$WORK/guest.log"
   # host-side watchdog as well as the guest's own: qemu can never hang CI
-  timeout $((VM_TIMEOUT + 60)) qemu-system-x86_64 -machine pc,accel="$ACCEL" -cpu "$cpu" -smp 1 -m 768 \
-    -kernel "$K/boot-image" -initrd "$WORK/initramfs.gz" \
-    -append "console=ttyS0 quiet loglevel=3 panic=-1 rdinit=/init vmtest_timeout=$VM_TIMEOUT" \
-    -display none -no-reboot -nodefaults -serial stdio \
-    -virtfs local,path="$WORK/share",mount_tag=host0,security_model=none,id=host0 \
-    </dev/null 2>&1 | tr -d '\r' > "$WORK/guest.log" || true
-  rc=$(sed -n 's/^VMTEST-EXIT: \([0-9]*\).*/\1/p' "$WORK/guest.log" | tail -1)
+  rc=$(vm_boot "$WORK/guest.log" $((VM_TIMEOUT + 60)) 768 "$WORK/initramfs.gz" \
+    "vmtest_timeout=$VM_TIMEOUT" "$WORK/share")
   log "guest finished: exit=${rc:-none} boot+test wall=$((SECONDS - s)) s (full console: $WORK/guest.log)"
   grep -E '^(RESULT|test |VMTEST)' "$WORK/guest.log" | sed 's/^/  /' >&2 || true
   if [ "${rc:-x}" = 0 ]; then log "PASS"; return 0; fi

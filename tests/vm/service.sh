@@ -4,11 +4,14 @@
 # Boots a minimal Debian bookworm root file system (mmdebstrap from Debian's packages: systemd as
 # PID 1, udev, kmod; cached) with Debian's kernel (shared with tests/vm/run.sh), installs cubecal into
 # it with deploy/install.sh (DESTDIR), and runs tests/vm/service-guest.sh as a oneshot unit of the
-# guest: load vivid -> udev starts cubecal@videoN.service -> check the unit -> unload vivid -> the unit
-# stops. Exit 0 PASS, 1 FAIL, 2 setup error.
+# guest: start the GRBL simulator with its feeder (`cubecal turntable simulate --feed`: the rig rendered
+# at the simulator's angle, written to vivid's output and looped into its capture) -> load vivid ->
+# udev starts cubecal@videoN.service -> the station calibrates through V4L2 and the serial protocol ->
+# a passing profile in /var/lib/cubecal -> unload vivid -> the unit stops. The station config is
+# tests/vm/station.toml. Exit 0 PASS, 1 FAIL, 2 setup error.
 #
 # usage: tests/vm/service.sh [all|rootfs|build|boot]   (default: all)
-# env:   CUBECAL_VM_WORK (default $CARGO_TARGET_DIR/vm), VM_TIMEOUT=300 (guest watchdog, s),
+# env:   CUBECAL_VM_WORK (default $CARGO_TARGET_DIR/vm), VM_TIMEOUT=900 (guest watchdog, s),
 #        CUBECAL_VM_BIN: a static cubecal to install (default: the one tests/vm/run.sh built, else build it)
 set -euo pipefail
 HERE=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
@@ -16,7 +19,7 @@ ROOT=$(cd "$HERE/../.." && pwd)
 TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target}
 case "$TARGET_DIR" in /*) ;; *) TARGET_DIR=$ROOT/$TARGET_DIR ;; esac
 WORK=${CUBECAL_VM_WORK:-$TARGET_DIR/vm}
-VM_TIMEOUT=${VM_TIMEOUT:-300}
+VM_TIMEOUT=${VM_TIMEOUT:-900}
 SUITE=bookworm
 MIRROR=http://deb.debian.org/debian
 GUEST_PKGS=systemd-sysv,udev,kmod
@@ -26,6 +29,8 @@ T0=$SECONDS
 log() { echo "[vm-service +$((SECONDS - T0))s] $*" >&2; }
 die() { log "SETUP ERROR: $*"; exit 2; }
 timed() { local s=$SECONDS; "$@"; log "step '$1' took $((SECONDS - s)) s"; }
+# shellcheck source=tests/vm/qemu.sh
+. "$HERE/qemu.sh"
 
 kernel_ready() {
   # packages, Debian's kernel and depmod: tests/vm/run.sh's own preparation (cached)
@@ -145,22 +150,17 @@ build() {
   rm -rf "$stage"
   cp "$bin" "$S/cubecal"
   cp "$HERE/service-guest.sh" "$S/service-guest.sh"; chmod +x "$S/service-guest.sh"
+  cp "$HERE/station.toml" "$S/station.toml"
 }
 
 boot() {
   [ -n "${KVER:-}" ] || KVER=$(cat "$WORK/kver")
-  local K=$WORK/kernel-$KVER s=$SECONDS rc
-  rm -f "$WORK/service-guest.log"
-  timeout $((VM_TIMEOUT + 90)) qemu-system-x86_64 -machine pc,accel=tcg -cpu max -smp 1 -m 1024 \
-    -kernel "$K/boot-image" -initrd "$WORK/initramfs-systemd.gz" \
-    -append "console=ttyS0 quiet loglevel=3 panic=-1 rdinit=/init systemd.show_status=false vmtest_timeout=$VM_TIMEOUT" \
-    -drive file="$WORK/rootfs.img",if=virtio,format=raw,snapshot=on \
-    -display none -no-reboot -nodefaults -serial stdio \
-    -virtfs local,path="$WORK/service-share",mount_tag=host0,security_model=none,id=host0 \
-    </dev/null 2>&1 | tr -d '\r' > "$WORK/service-guest.log" || true
-  rc=$(sed -n 's/^VMTEST-EXIT: \([0-9]*\).*/\1/p' "$WORK/service-guest.log" | tail -1)
+  local s=$SECONDS rc
+  rc=$(vm_boot "$WORK/service-guest.log" $((VM_TIMEOUT + 90)) 1024 "$WORK/initramfs-systemd.gz" \
+    "systemd.show_status=false vmtest_timeout=$VM_TIMEOUT" "$WORK/service-share" \
+    -drive file="$WORK/rootfs.img",if=virtio,format=raw,snapshot=on)
   log "guest finished: exit=${rc:-none} boot+test wall=$((SECONDS - s)) s (console: $WORK/service-guest.log)"
-  grep -E '^(RESULT|STATUS|VMTEST)' "$WORK/service-guest.log" | sed 's/^/  /' >&2 || true
+  grep -E '^(RESULT|STATUS|VMTEST|watchdog|unit)|profile\|' "$WORK/service-guest.log" | sed 's/^/  /' >&2 || true
   if [ "${rc:-x}" = 0 ]; then log "PASS"; return 0; fi
   log "FAIL — last 80 console lines:"; tail -80 "$WORK/service-guest.log" | sed 's/^/  | /' >&2
   return 1
