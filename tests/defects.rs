@@ -318,6 +318,37 @@ fn undetermined_parameters_names_k3_on_the_cube_fixture() {
     assert!(u.is_empty(), "{u:?}");
 }
 
+/// The station's k3 rule (`insignificant_at_border`): a k3 within 2σ of zero that moves the image border
+/// by more than a pixel per σ is flagged even when σ < |k3| (the k3 = 2.1 ± 2.0 that a turntable run with
+/// corners in the middle third of the image produced); at 2.5σ it is kept; with 20 views nothing is.
+#[test]
+fn insignificant_k3_is_flagged_up_to_two_sigma() {
+    let obs = Observations::load(Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/fixtures/observations/cube_synthetic.json"
+    )))
+    .unwrap();
+    let mut cal = calib::solve(&obs.views, obs.image_size, &SolveOptions::default()).unwrap();
+    let sd = cal.std_dev[idx::K3];
+    assert!(calib::insignificant_at_border(&cal, idx::K3).is_some());
+    cal.camera.params[idx::K3] = 1.5 * sd;
+    let flagged = calib::insignificant_at_border(&cal, idx::K3).expect("1.5σ flagged");
+    assert!(flagged.effect_px > calib::UNDETERMINED_EFFECT_PX);
+    let names: Vec<&str> = calib::undetermined_parameters(&cal)
+        .iter()
+        .map(|p| p.name)
+        .collect();
+    assert!(!names.contains(&"k3"), "σ < |k3|: not undetermined");
+    cal.camera.params[idx::K3] = -2.5 * sd;
+    assert!(calib::insignificant_at_border(&cal, idx::K3).is_none());
+    let truth = reference_camera();
+    let sc = cube_scenario(&truth, 200.0, 20, 11);
+    let views = add_noise(&sc.views, 0.1, 5);
+    let cal = calib::solve(&views, truth.image_size, &SolveOptions::default()).unwrap();
+    let k3 = calib::insignificant_at_border(&cal, idx::K3);
+    assert!(k3.is_none(), "{k3:?}");
+}
+
 // ---- Items 6–12: the command line. ----
 
 fn stderr(out: &std::process::Output) -> String {

@@ -18,7 +18,10 @@ pub mod pose;
 pub mod report;
 pub mod rigrefine;
 
-pub use determined::{UNDETERMINED_EFFECT_PX, UndeterminedParam, undetermined_parameters};
+pub use determined::{
+    SIGNIFICANCE_SIGMAS, UNDETERMINED_EFFECT_PX, UndeterminedParam, insignificant_at_border,
+    undetermined_parameters,
+};
 pub use lm::{Calibration, Fix, Loss, SolveOptions, Termination, ViewResult, solve, solve_from};
 pub use rigrefine::{
     FaceCorrection, NoiseCorrelation, RigCalibration, RigPoint, RigRefineOptions, RigView,

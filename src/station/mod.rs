@@ -12,8 +12,9 @@
 //!    rig, so `--replay RUN_DIR/session` re-runs the same data bit for bit.
 //! 3. Solve (robust loss), with the last `plan.held_out` accepted views kept out; each held-out view's
 //!    pose is then solved with the intrinsics fixed ([`crate::calib::pose`]) and its RMS compared with
-//!    the fit's. k3 is fixed (and the verdict says so) when the data leave it undetermined — turntable
-//!    sequences keep the rig near the image centre and determine high-order distortion poorly.
+//!    the fit's. k3 is fixed (and the verdict says so) when the data cannot tell it from zero (within 2σ) while one
+//!    σ of it moves the image border by over a pixel ([`crate::calib::insignificant_at_border`]) —
+//!    turntable sequences keep the rig near the image centre and determine high-order distortion poorly.
 //! 4. [`judge`] turns the result into a [`Verdict`] of named checks with thresholds and hints.
 //! 5. A passing run writes its profile; a failing one writes none. The run directory holds
 //!    `session/`, `rig.toml`, `observations.json` (accepted views, with faces and held-out marks),
@@ -692,11 +693,9 @@ fn solve_and_judge(
             return Ok(result);
         }
     };
-    {
-        use crate::camera::idx;
-        let k3_sd = cal.std_dev[idx::K3];
-        let k3 = cal.camera.params[idx::K3];
-        if cfg.solve.fix_undetermined_k3 && cal.estimated[idx::K3] && k3_sd > k3.abs().max(0.1) {
+    if cfg.solve.fix_undetermined_k3 {
+        if let Some(k3) = crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3) {
+            let (k3, k3_sd) = (k3.value, k3.std_dev);
             opts.fix.k3 = true;
             match notify::alive_during(sink, SOLVE_LIMIT, || {
                 crate::calib::solve(&fit, image_size, &opts)
