@@ -12,7 +12,9 @@
 //! fits every lattice corner with the X-junction model of [`refine`] (window shaped by the lattice,
 //! per-corner σ from the fit) and recovers the corners the front end missed where the lattice
 //! predicts them. [`label`] decides which face each grid is, never guessing; [`score`] measures all of
-//! this against the ground truth of synthetic renders.
+//! this against the ground truth of synthetic renders. Once a calibration exists,
+//! [`refine_with_camera`] ([`undistorted`]) fits the labelled corners again in undistorted
+//! coordinates, where lens distortion no longer bends their edges.
 
 use image::GrayImage;
 use nalgebra::Vector2;

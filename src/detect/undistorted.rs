@@ -129,10 +129,10 @@ pub fn refine_with_camera(
 }
 
 /// One recorded view for [`refit_recorded`]: the frame file it was detected in and the detection.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct Recorded<'a> {
     pub name: &'a str,
-    pub frame: &'a std::path::Path,
+    pub frame: std::path::PathBuf,
     pub detection: &'a FrameDetection,
 }
 
@@ -147,7 +147,7 @@ pub fn refit_recorded(
     recorded
         .iter()
         .map(|r| {
-            let img = match image::open(r.frame) {
+            let img = match image::open(&r.frame) {
                 Ok(i) => i.to_luma8(),
                 Err(e) => {
                     tracing::warn!(frame = %r.frame.display(), error = %e, "cannot read the frame again to refit its corners");
@@ -162,4 +162,59 @@ pub fn refit_recorded(
             Some(det.to_view(r.name))
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::camera::DistortionModel;
+
+    fn camera() -> Camera {
+        Camera::pinhole([1280, 960], 1250.0, 1240.0, 641.0, 478.0)
+            .with_distortion(DistortionModel::Brown5, &[-0.3, 0.05, 0.001, -0.0005])
+    }
+
+    #[test]
+    fn the_map_and_its_inverse_agree_with_their_jacobian() {
+        let camera = camera();
+        let map = Undistorted { camera: &camera };
+        for uv in [
+            Vector2::new(640.0, 480.0),
+            Vector2::new(20.0, 30.0),
+            Vector2::new(1250.0, 900.0),
+        ] {
+            let q = map.to_plane(uv).unwrap();
+            let (back, jac) = map.to_image(q).unwrap();
+            assert!((back - uv).norm() < 1e-6, "{uv:?} → {q:?} → {back:?}");
+            let h = 1e-3;
+            for k in 0..2 {
+                let mut dq = Vector2::zeros();
+                dq[k] = h;
+                let (p, _) = map.to_image(q + dq).unwrap();
+                let (m, _) = map.to_image(q - dq).unwrap();
+                let numeric = (p - m) / (2.0 * h);
+                assert!(
+                    (numeric - jac.column(k)).norm() < 1e-5,
+                    "{numeric:?} vs {jac:?}"
+                );
+            }
+        }
+        // Barrel distortion: the undistorted image is larger than the image.
+        let q = map.to_plane(Vector2::new(20.0, 30.0)).unwrap();
+        assert!(q.x < 20.0 && q.y < 30.0, "{q:?}");
+    }
+
+    #[test]
+    fn a_camera_of_another_size_is_refused() {
+        let img = GrayImage::new(640, 480);
+        let mut det = FrameDetection {
+            width: 640,
+            height: 480,
+            faces: Vec::new(),
+            rejected: Vec::new(),
+        };
+        let err = refine_with_camera(&img, &mut det, &camera()).unwrap_err();
+        assert!(matches!(err, DetectError::CameraSize { .. }), "{err}");
+    }
 }

@@ -710,28 +710,23 @@ fn solve_and_judge(
     // distortion bends the edges; issue 19), kept when the solve's residuals fall.
     let recorded: Vec<_> = (poses.iter())
         .filter_map(|p| {
-            Some((
-                p.view.as_ref()?,
-                p.detection.as_ref()?,
-                p.record.frame.as_ref()?,
-            ))
+            Some(crate::detect::undistorted::Recorded {
+                name: &p.view.as_ref()?.0.name,
+                frame: spec.run_dir.join("session").join(p.record.frame.as_ref()?),
+                detection: p.detection.as_ref()?,
+            })
         })
-        .map(|((v, _), d, f)| (v.name.clone(), spec.run_dir.join("session").join(f), d))
-        .collect();
-    let recorded: Vec<_> = (recorded.iter())
-        .map(
-            |(name, frame, detection)| crate::detect::undistorted::Recorded {
-                name,
-                frame,
-                detection,
-            },
-        )
         .collect();
     if recorded.len() == accepted.len()
         && let Some(views) = crate::detect::undistorted::refit_recorded(&recorded, &cal.camera)
         && let Ok(c) = crate::calib::solve(&views[..n_fit], image_size, &opts)
         && c.rms_px < cal.rms_px
     {
+        tracing::info!(
+            before = cal.rms_px,
+            after = c.rms_px,
+            "corners refitted with the lens"
+        );
         (fit, held, cal) = (views[..n_fit].to_vec(), views[n_fit..].to_vec(), c);
         (accepted.iter_mut().zip(views)).for_each(|(a, v)| a.0 = v);
         write_observations(&accepted)?;
