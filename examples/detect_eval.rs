@@ -6,21 +6,29 @@
 //! ```
 //! Arguments: set (`realistic`: cube rig, 1920×1080, fx 1400, k1 −0.1, blur σ 1, noise σ 2, gamma 2.2,
 //! vignetting 0.3; `hard`: 1280×960, fx 700, k1 −0.3, blur σ 1.5, noise σ 5, low contrast (reflectances
-//! 0.3 / 0.55), gamma 2.2, vignetting 0.3), number of random poses, cache directory (frames are
+//! 0.3 / 0.55), gamma 2.2, vignetting 0.3; `periphery-0.3`, `periphery-0.4`: strong barrel distortion
+//! with the rig near the image corners, see [`EvalSet`]), number of random poses, cache directory (frames are
 //! rendered once and reused). Prints every face (angle from frontal, found or why not) and the
 //! summary by angle bucket, plus the detection time per frame. `VERBOSE=1` prints every face and
 //! rejection; `FRONT=1` also prints the front end's recall per frame (true corners with a candidate
-//! within 1 px) and its number of candidates.
+//! within 1 px) and its number of candidates. `REREFINE=1` also fits the corners again in
+//! undistorted coordinates, with the true camera and with calibrations solved from the corners
+//! (see `rerefine_report`), and prints the calibration's errors before and after. `NOISE=σ`
+//! renders with pixel noise σ instead of the set's (`NOISE=0`: the noise-free bias).
 #![allow(clippy::print_stdout, clippy::print_stderr)]
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
+use cubecal::calib::SolveOptions;
 use cubecal::camera::Pose;
+use cubecal::camera::{Camera, idx};
 use cubecal::capture::synthetic::{frame_paths, ground_truth, render, write_frame};
-use cubecal::detect::score::{EvalSet, Summary, score};
-use cubecal::detect::{CornerFinder, detect};
+use cubecal::detect::score::{
+    Bias, EvalSet, Summary, imaged_radius, in_border_band, relative_radius, score,
+};
+use cubecal::detect::{CornerFinder, detect, refine_with_camera};
 use cubecal::rig::Rig;
 use nalgebra::Vector3;
 
@@ -44,12 +52,15 @@ fn main() -> anyhow::Result<()> {
         "/fixtures/rigs/cube_outside.toml"
     ));
     let (rig, _) = Rig::load(&rig_path)?;
-    let eval_set = match set {
-        "realistic" => EvalSet::Realistic,
-        "hard" => EvalSet::Hard,
-        other => anyhow::bail!("unknown set {other:?} (realistic | hard)"),
+    let Some(eval_set) = EvalSet::from_name(set) else {
+        anyhow::bail!("unknown set {set:?} (realistic | hard | periphery-0.3 | periphery-0.4)");
     };
-    let (camera, settings) = (eval_set.camera(), eval_set.settings());
+    let (camera, mut settings) = (eval_set.camera(), eval_set.settings());
+    // NOISE=σ overrides the set's pixel noise (NOISE=0: the detector's noise-free bias).
+    let noise: Option<f64> = std::env::var("NOISE").ok().map(|s| s.parse()).transpose()?;
+    if let Some(sigma) = noise {
+        settings.noise_sigma = sigma;
+    }
     // PAN_DEG=θ turns the camera about its vertical axis by ±θ (alternating) so that the rig is
     // cut by the image border: partially visible faces.
     let pan_deg: f64 = std::env::var("PAN_DEG")
@@ -57,11 +68,14 @@ fn main() -> anyhow::Result<()> {
         .map(|s| s.parse())
         .transpose()?
         .unwrap_or(0.0);
-    let dir = if pan_deg == 0.0 {
-        cache.join(set)
-    } else {
-        cache.join(format!("{set}-pan{pan_deg}"))
-    };
+    let mut dir_name = set.to_string();
+    if pan_deg != 0.0 {
+        dir_name += &format!("-pan{pan_deg}");
+    }
+    if let Some(sigma) = noise {
+        dir_name += &format!("-noise{sigma}");
+    }
+    let dir = cache.join(dir_name);
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let poses: Vec<_> = eval_set
         .poses(&rig, n)
@@ -75,6 +89,8 @@ fn main() -> anyhow::Result<()> {
         })
         .collect();
     let mut finder = CornerFinder::new()?;
+    let rerefine = std::env::var_os("REREFINE").is_some();
+    let mut kept = Vec::new();
     let mut all = Vec::new();
     let mut times = Vec::new();
     for (k, pose) in poses.iter().enumerate() {
@@ -120,6 +136,9 @@ fn main() -> anyhow::Result<()> {
             }
         }
         all.extend(scores);
+        if rerefine {
+            kept.push((img, det, truth));
+        }
     }
     times.sort_by(f64::total_cmp);
     println!(
@@ -134,9 +153,16 @@ fn main() -> anyhow::Result<()> {
         "  faces < 75°:             {}",
         Summary::of(&all, 0.0, 75.0)
     );
-    for (a, b) in [(0.0, 45.0), (45.0, 60.0), (60.0, 75.0), (75.0, 90.1)] {
+    for (a, b) in [
+        (0.0, 45.0),
+        (45.0, 60.0),
+        (60.0, 75.0),
+        (75.0, 80.0),
+        (80.0, 90.1),
+    ] {
         println!("  {a:2}–{b:2}°: {}", Summary::of(&all, a, b));
     }
+    print_bias(&all, &camera);
     let partial: Vec<_> = all.iter().filter(|s| !s.fully_visible).collect();
     let placed: Vec<_> = partial.iter().filter(|s| s.found).collect();
     let errors: Vec<f64> = placed
@@ -157,7 +183,110 @@ fn main() -> anyhow::Result<()> {
         times[times.len() / 2],
         times[times.len() - 1]
     );
+    if rerefine {
+        rerefine_report(&rig, &camera, &kept)?;
+    }
     Ok(())
+}
+
+type Kept = (
+    image::GrayImage,
+    cubecal::detect::FrameDetection,
+    cubecal::capture::synthetic::GroundTruth,
+);
+
+/// `REREFINE=1`: the corners fitted again in undistorted coordinates ([`refine_with_camera`]),
+/// first with the true camera (the bound), then as a user gets it: calibrate from the detected
+/// corners, fit again with the solved camera, calibrate again (two rounds); the calibration's errors
+/// against the true camera after each round.
+fn rerefine_report(rig: &Rig, truth_camera: &Camera, kept: &[Kept]) -> anyhow::Result<()> {
+    let size = truth_camera.image_size;
+    let summarise = |label: &str, dets: &[cubecal::detect::FrameDetection]| {
+        let scores: Vec<_> = kept
+            .iter()
+            .zip(dets)
+            .flat_map(|((_, _, truth), d)| score(rig, truth, d))
+            .collect();
+        println!("{label}:");
+        println!("  faces < 75°: {}", Summary::of(&scores, 0.0, 75.0));
+        println!("  75–80°:      {}", Summary::of(&scores, 75.0, 80.0));
+        print_bias(&scores, truth_camera);
+    };
+    let refit = |camera: &Camera| -> anyhow::Result<Vec<cubecal::detect::FrameDetection>> {
+        let t = Instant::now();
+        let mut out = Vec::new();
+        let (mut n, mut refitted) = (0, 0);
+        for (img, det, _) in kept {
+            let mut d = det.clone();
+            let r = refine_with_camera(img, &mut d, camera)?;
+            n += r.corners;
+            refitted += r.refitted;
+            out.push(d);
+        }
+        println!(
+            "  refitted {refitted} of {n} corners in {:.1} ms per frame",
+            t.elapsed().as_secs_f64() * 1e3 / kept.len().max(1) as f64
+        );
+        Ok(out)
+    };
+    let calibrate = |label: &str,
+                     dets: &[cubecal::detect::FrameDetection]|
+     -> anyhow::Result<Camera> {
+        let views: Vec<_> = dets
+            .iter()
+            .enumerate()
+            .filter(|(_, d)| !d.faces.is_empty())
+            .map(|(k, d)| d.to_view(&format!("frame_{k:03}")))
+            .collect();
+        let cal = cubecal::calib::solve(&views, size, &SolveOptions::default())?;
+        let (c, t) = (&cal.camera, truth_camera);
+        println!(
+            "  calibration {label}: fx {:+.4} px ({:+.4} %), fy {:+.4}, cx {:+.4}, cy {:+.4}, k1 {:+.5} (σ fx {:.4}, cx {:.4}, k1 {:.5}), RMS {:.4} px",
+            c.fx() - t.fx(),
+            100.0 * (c.fx() / t.fx() - 1.0),
+            c.fy() - t.fy(),
+            c.cx() - t.cx(),
+            c.cy() - t.cy(),
+            c.params[idx::K1] - t.params[idx::K1],
+            cal.std_dev[idx::FX],
+            cal.std_dev[idx::CX],
+            cal.std_dev[idx::K1],
+            cal.rms_px
+        );
+        Ok(cal.camera)
+    };
+    let plain: Vec<_> = kept.iter().map(|(_, d, _)| d.clone()).collect();
+    println!("--- re-refinement in undistorted coordinates");
+    let with_truth = refit(truth_camera)?;
+    summarise("with the true camera", &with_truth);
+    println!("as a user calibrates (calibration errors vs the true camera):");
+    let mut camera = calibrate("from the detector's corners", &plain)?;
+    let mut dets = plain;
+    for round in 1..=2 {
+        dets = refit(&camera)?;
+        camera = calibrate(&format!("after re-refinement round {round}"), &dets)?;
+    }
+    summarise("with the solved camera (2 rounds)", &dets);
+    Ok(())
+}
+
+/// Corner errors by position in the image (fully visible faces < 75°): the outer 10 % border band
+/// and rings of relative radius (fraction of the largest radius imaged: the farthest image corner or
+/// the distortion's fold, whichever is nearer; [`imaged_radius`]).
+fn print_bias(all: &[cubecal::detect::score::FaceScore], camera: &Camera) {
+    let size = camera.image_size;
+    println!(
+        "  outer 10 % (within 10 % of the width / height of the border): {}",
+        Bias::of(all, size, 75.0, |t| in_border_band(t, size, 0.1))
+    );
+    for (a, b) in [(0.0, 0.5), (0.5, 0.7), (0.7, 0.8), (0.8, 0.9), (0.9, 1.01)] {
+        println!(
+            "  radius {a:.1}–{b:.1} of {:.0} px: {}",
+            imaged_radius(camera),
+            Bias::of(all, size, 75.0, |t| (a..b)
+                .contains(&relative_radius(t, camera)))
+        );
+    }
 }
 
 /// The front end alone against the ground truth: how many visible corners have a candidate within

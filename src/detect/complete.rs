@@ -243,7 +243,7 @@ fn lattice_curvature(cells: &Cells, r: i32, c: i32, dr: i32, dc: i32) -> Option<
 }
 
 fn fit(img: &GrayImage, p: Vector2<f64>, a: Vector2<f64>, b: Vector2<f64>) -> Option<Refined> {
-    match refine::refine(img, p, a, b) {
+    match refine::refine_near_border(img, p, a, b) {
         Ok(f) => Some(f),
         Err(why) => {
             tracing::trace!(?p, ?a, ?b, ?why, "corner fit failed");

@@ -12,7 +12,9 @@
 //! fits every lattice corner with the X-junction model of [`refine`] (window shaped by the lattice,
 //! per-corner σ from the fit) and recovers the corners the front end missed where the lattice
 //! predicts them. [`label`] decides which face each grid is, never guessing; [`score`] measures all of
-//! this against the ground truth of synthetic renders.
+//! this against the ground truth of synthetic renders. Once a calibration exists,
+//! [`refine_with_camera`] ([`undistorted`]) fits the labelled corners again in undistorted
+//! coordinates, where lens distortion no longer bends their edges.
 
 use image::GrayImage;
 use nalgebra::Vector2;
@@ -27,6 +29,9 @@ pub mod overlay;
 pub mod place;
 pub mod refine;
 pub mod score;
+pub mod undistorted;
+
+pub use undistorted::refine_with_camera;
 
 /// Smallest frame side the detector accepts.
 pub const MIN_SIDE: u32 = 32;
@@ -37,13 +42,15 @@ pub const MIN_SIDE: u32 = 32;
 pub enum DetectError {
     #[error("frame {width}×{height} is too small (minimum {MIN_SIDE}×{MIN_SIDE})")]
     TooSmall { width: u32, height: u32 },
+    #[error("the camera is for {}×{} images, the frame is {}×{}", camera[0], camera[1], frame[0], frame[1])]
+    CameraSize { camera: [u32; 2], frame: [u32; 2] },
 }
 
 impl DetectError {
     /// The process exit code for this error (see [`crate::exit`]).
     pub fn exit_code(&self) -> u8 {
         match self {
-            DetectError::TooSmall { .. } => crate::exit::BAD_INPUT,
+            DetectError::TooSmall { .. } | DetectError::CameraSize { .. } => crate::exit::BAD_INPUT,
         }
     }
 }

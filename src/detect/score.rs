@@ -6,7 +6,7 @@
 
 use std::collections::HashMap;
 
-use nalgebra::Vector3;
+use nalgebra::{Vector2, Vector3};
 
 use super::FrameDetection;
 use crate::camera::{Camera, DistortionModel, Pose};
@@ -21,6 +21,15 @@ pub enum EvalSet {
     /// 1280×960, fx 700, k1 −0.3, blur σ 1.5, noise σ 5, gamma 2.2, vignetting 0.3, low contrast
     /// (reflectances 0.3 / 0.55 instead of 0.06 / 0.88).
     Hard,
+    /// Strong barrel distortion with the rig near the image corners (issue 19): 1280×960, k1 −0.3,
+    /// fx 1250 (the distortion's fold, where the radial magnification `1 + 3·k1·r²` reaches 0, lies
+    /// at 1.1 × the half-diagonal, so the whole frame is imaged and the magnification in the image
+    /// corners is down to ~0.4), the realistic set's blur, noise, gamma and vignetting; the cube at
+    /// about twice the realistic distance, its centre turned towards one of the four image corners
+    /// in turn ([`periphery_poses`]).
+    PeripheryK1m03,
+    /// As [`EvalSet::PeripheryK1m03`] with k1 −0.4 and fx 1450 (fold at 1.1 × the half-diagonal).
+    PeripheryK1m04,
 }
 
 impl EvalSet {
@@ -30,6 +39,10 @@ impl EvalSet {
                 .with_distortion(DistortionModel::Brown5, &[-0.1]),
             EvalSet::Hard => Camera::pinhole([1280, 960], 700.0, 700.0, 639.5, 479.5)
                 .with_distortion(DistortionModel::Brown5, &[-0.3]),
+            EvalSet::PeripheryK1m03 => Camera::pinhole([1280, 960], 1250.0, 1250.0, 639.5, 479.5)
+                .with_distortion(DistortionModel::Brown5, &[-0.3]),
+            EvalSet::PeripheryK1m04 => Camera::pinhole([1280, 960], 1450.0, 1450.0, 639.5, 479.5)
+                .with_distortion(DistortionModel::Brown5, &[-0.4]),
         }
     }
 
@@ -44,6 +57,12 @@ impl EvalSet {
                 blur_sigma_px: 1.0,
                 noise_sigma: 2.0,
                 seed: 1,
+                ..base
+            },
+            EvalSet::PeripheryK1m03 | EvalSet::PeripheryK1m04 => RenderSettings {
+                blur_sigma_px: 1.0,
+                noise_sigma: 2.0,
+                seed: 3,
                 ..base
             },
             EvalSet::Hard => RenderSettings {
@@ -62,9 +81,83 @@ impl EvalSet {
 
     /// `n` seeded random views of `rig` ([`random_poses`]); the first `k` of `n` do not depend on `n`.
     pub fn poses(self, rig: &Rig, n: usize) -> Vec<Pose> {
-        random_poses(rig, &self.camera(), n, self.settings().seed)
+        match self {
+            EvalSet::Realistic | EvalSet::Hard => {
+                random_poses(rig, &self.camera(), n, self.settings().seed)
+            }
+            EvalSet::PeripheryK1m03 | EvalSet::PeripheryK1m04 => {
+                periphery_poses(rig, &self.camera(), n, self.settings().seed)
+            }
+        }
+    }
+
+    /// The set's name on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            EvalSet::Realistic => "realistic",
+            EvalSet::Hard => "hard",
+            EvalSet::PeripheryK1m03 => "periphery-0.3",
+            EvalSet::PeripheryK1m04 => "periphery-0.4",
+        }
+    }
+
+    /// The set named `name` ([`EvalSet::name`]).
+    pub fn from_name(name: &str) -> Option<EvalSet> {
+        [
+            EvalSet::Realistic,
+            EvalSet::Hard,
+            EvalSet::PeripheryK1m03,
+            EvalSet::PeripheryK1m04,
+        ]
+        .into_iter()
+        .find(|s| s.name() == name)
     }
 }
+
+/// `n` seeded views with the rig near the image corners: [`random_poses`] moved back to
+/// [`PERIPHERY_DISTANCE`] × their distance, then the camera turned so that the rig's centre is seen
+/// at [`PERIPHERY_OFFSET`] of the way from the image centre to corner `k mod 4`.
+pub fn periphery_poses(rig: &Rig, camera: &Camera, n: usize, seed: u64) -> Vec<Pose> {
+    let centre = rig.centre();
+    let (w, h) = (
+        f64::from(camera.image_size[0]),
+        f64::from(camera.image_size[1]),
+    );
+    random_poses(rig, camera, n, seed)
+        .into_iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let depth = p.transform(&centre).z;
+            let back = Pose::from_axis_angle(
+                Vector3::zeros(),
+                Vector3::new(0.0, 0.0, (PERIPHERY_DISTANCE - 1.0) * depth),
+            );
+            let p = back.compose(&p);
+            let (sx, sy) = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)][k % 4];
+            let target = Vector2::new(
+                camera.cx() + sx * PERIPHERY_OFFSET * w / 2.0,
+                camera.cy() + sy * PERIPHERY_OFFSET * h / 2.0,
+            );
+            let from = p.transform(&centre).normalize();
+            let Ok(to) = camera.unproject(target.x, target.y) else {
+                return p;
+            };
+            let axis = from.cross(&to);
+            let angle = axis.norm().atan2(from.dot(&to));
+            let turn = match axis.try_normalize(1e-12) {
+                Some(a) => Pose::from_axis_angle(a * angle, Vector3::zeros()),
+                None => Pose::identity(),
+            };
+            turn.compose(&p)
+        })
+        .collect()
+}
+
+/// Distance of [`periphery_poses`]' views relative to [`random_poses`]'.
+pub const PERIPHERY_DISTANCE: f64 = 1.9;
+/// Where [`periphery_poses`] puts the rig's centre: this fraction of the way from the image centre
+/// to an image corner.
+pub const PERIPHERY_OFFSET: f64 = 0.8;
 
 /// A detected corner farther than this from its ground-truth position (px) counts as mislabelled.
 pub const MISLABEL_PX: f64 = 1.0;
@@ -91,6 +184,10 @@ pub struct FaceScore {
     pub errors: Vec<f64>,
     /// The detector's σ (px, per coordinate) of the same corners.
     pub sigmas: Vec<f64>,
+    /// Error vectors (detected − true, px) of the same corners.
+    pub offsets: Vec<Vector2<f64>>,
+    /// True positions of the same corners.
+    pub truth_uv: Vec<Vector2<f64>>,
 }
 
 /// Score one frame's detection.
@@ -123,6 +220,8 @@ pub fn score(rig: &Rig, truth: &GroundTruth, det: &FrameDetection) -> Vec<FaceSc
                 mislabelled: 0,
                 errors: Vec::new(),
                 sigmas: Vec::new(),
+                offsets: Vec::new(),
+                truth_uv: Vec::new(),
             };
             for d in det.faces.iter().filter(|d| d.face == fi) {
                 s.found = true;
@@ -136,6 +235,9 @@ pub fn score(rig: &Rig, truth: &GroundTruth, det: &FrameDetection) -> Vec<FaceSc
                             } else {
                                 s.errors.push(e);
                                 s.sigmas.push(c.sigma_px);
+                                let t = Vector2::new(t[0], t[1]);
+                                s.offsets.push(c.uv - t);
+                                s.truth_uv.push(t);
                             }
                         }
                         None => s.mislabelled += 1,
@@ -216,4 +318,117 @@ impl std::fmt::Display for Summary {
             self.rms_sigma_px
         )
     }
+}
+
+/// Whether `uv` lies in the outer `fraction` of an image of `size`: within `fraction` of the width of
+/// the left or right border, or within `fraction` of the height of the top or bottom border.
+pub fn in_border_band(uv: &Vector2<f64>, size: [u32; 2], fraction: f64) -> bool {
+    let (w, h) = (f64::from(size[0]), f64::from(size[1]));
+    // Pixel centres run from 0 to w − 1: the image spans [−½, w − ½).
+    let (x, y) = (uv.x + 0.5, uv.y + 0.5);
+    x < fraction * w || x > (1.0 - fraction) * w || y < fraction * h || y > (1.0 - fraction) * h
+}
+
+/// The systematic part of the corner errors in a region of the image: the mean error vector in the
+/// local radial frame about the image centre (radial component positive outwards; a lens-model bias
+/// is radial and changes sign across the image, so a mean of raw vectors would cancel), and the RMS.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Bias {
+    pub corners: usize,
+    /// Mean radial component of the error (px, + outwards).
+    pub radial_px: f64,
+    /// Mean tangential component (px, + counter-clockwise in image coordinates).
+    pub tangential_px: f64,
+    /// RMS of the error (px).
+    pub rms_px: f64,
+}
+
+impl Bias {
+    /// Over the correctly labelled corners of the faces (fully or partly visible) seen at less than
+    /// `max_angle_deg` whose true position satisfies `keep`.
+    pub fn of(
+        scores: &[FaceScore],
+        size: [u32; 2],
+        max_angle_deg: f64,
+        keep: impl Fn(&Vector2<f64>) -> bool,
+    ) -> Bias {
+        let centre = Vector2::new(
+            (f64::from(size[0]) - 1.0) / 2.0,
+            (f64::from(size[1]) - 1.0) / 2.0,
+        );
+        let mut b = Bias::default();
+        let mut sq = 0.0;
+        for f in scores.iter().filter(|f| f.angle_deg < max_angle_deg) {
+            for (e, t) in f.offsets.iter().zip(&f.truth_uv) {
+                if !keep(t) {
+                    continue;
+                }
+                let Some(r) = (t - centre).try_normalize(1e-9) else {
+                    continue;
+                };
+                b.corners += 1;
+                b.radial_px += e.dot(&r);
+                b.tangential_px += e.x * -r.y + e.y * r.x;
+                sq += e.norm_squared();
+            }
+        }
+        if b.corners > 0 {
+            let n = b.corners as f64;
+            b.radial_px /= n;
+            b.tangential_px /= n;
+            b.rms_px = (sq / n).sqrt();
+        }
+        b
+    }
+
+    /// Length of the mean error vector (radial, tangential), px.
+    pub fn mean_px(&self) -> f64 {
+        self.radial_px.hypot(self.tangential_px)
+    }
+}
+
+impl std::fmt::Display for Bias {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} corners, mean error (radial {:+.4}, tangential {:+.4}) px, |mean| {:.4} px, RMS {:.4} px",
+            self.corners,
+            self.radial_px,
+            self.tangential_px,
+            self.mean_px(),
+            self.rms_px
+        )
+    }
+}
+
+/// Distance of `uv` from the principal point of `camera`, as a fraction of [`imaged_radius`].
+pub fn relative_radius(uv: &Vector2<f64>, camera: &Camera) -> f64 {
+    (uv - Vector2::new(camera.cx(), camera.cy())).norm() / imaged_radius(camera)
+}
+
+/// The largest distance from the principal point (px) at which `camera` images anything: the
+/// farthest image corner, or the distortion's fold (where the radial magnification reaches 0 and
+/// the renderer sees nothing beyond) if that is nearer. Radial distortion only, along the x axis.
+pub fn imaged_radius(camera: &Camera) -> f64 {
+    let [w, h] = camera.image_size.map(f64::from);
+    let (cx, cy) = (camera.cx(), camera.cy());
+    let corner = [
+        (-0.5, -0.5),
+        (w - 0.5, -0.5),
+        (-0.5, h - 0.5),
+        (w - 0.5, h - 0.5),
+    ]
+    .iter()
+    .map(|&(x, y)| (x - cx).hypot(y - cy))
+    .fold(0.0, f64::max);
+    let mut previous = 0.0;
+    for k in 1..=3000 {
+        let r = f64::from(k) * 1e-3;
+        let d = camera.distort(r, 0.0).x;
+        if d <= previous {
+            return corner.min(previous * camera.fx());
+        }
+        previous = d;
+    }
+    corner
 }

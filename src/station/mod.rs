@@ -213,6 +213,8 @@ fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), StationError> 
 struct PoseData {
     record: ViewRecord,
     view: Option<(View, Vec<String>)>,
+    /// The detection behind `view`, to fit its corners again once a lens is known.
+    detection: Option<crate::detect::FrameDetection>,
 }
 
 /// Run a station: see the module docs. Returns the result (with its verdict) or the error that ended
@@ -477,6 +479,7 @@ fn examine(
             record
         },
         view: None,
+        detection: None,
     };
     let Some(last) = frames.last() else {
         return Ok(reject(record, "no frame".into()));
@@ -577,6 +580,7 @@ fn examine(
             faces,
         )),
         record,
+        detection: Some(det),
     })
 }
 
@@ -615,7 +619,7 @@ fn solve_and_judge(
 ) -> Result<RunResult, StationError> {
     let cfg = spec.config;
     let image_size = [info.width, info.height];
-    let accepted: Vec<(View, Vec<String>, Option<String>)> = poses
+    let mut accepted: Vec<(View, Vec<String>, Option<String>)> = poses
         .iter()
         .filter_map(|p| {
             p.view
@@ -629,32 +633,35 @@ fn solve_and_judge(
         0
     };
     let n_fit = accepted.len() - n_held;
-    let fit: Vec<View> = accepted[..n_fit].iter().map(|a| a.0.clone()).collect();
-    let held: Vec<View> = accepted[n_fit..].iter().map(|a| a.0.clone()).collect();
+    let mut fit: Vec<View> = accepted[..n_fit].iter().map(|a| a.0.clone()).collect();
+    let mut held: Vec<View> = accepted[n_fit..].iter().map(|a| a.0.clone()).collect();
     // observations.json: the accepted views with faces, frames and held-out marks.
-    let raw = crate::observations::RawObservations {
-        image_size,
-        views: accepted
-            .iter()
-            .enumerate()
-            .map(|(i, (v, faces, frame))| crate::observations::RawView {
-                name: Some(v.name.clone()),
-                points: v
-                    .points
-                    .iter()
-                    .zip(faces)
-                    .map(|(c, f)| crate::observations::RawPoint {
-                        xyz: c.xyz.into(),
-                        uv: c.uv.into(),
-                        face: Some(f.clone()),
-                    })
-                    .collect(),
-                frame: frame.clone(),
-                held_out: i >= n_fit,
-            })
-            .collect(),
+    let write_observations = |accepted: &[(View, Vec<String>, Option<String>)]| {
+        let raw = crate::observations::RawObservations {
+            image_size,
+            views: accepted
+                .iter()
+                .enumerate()
+                .map(|(i, (v, faces, frame))| crate::observations::RawView {
+                    name: Some(v.name.clone()),
+                    points: v
+                        .points
+                        .iter()
+                        .zip(faces)
+                        .map(|(c, f)| crate::observations::RawPoint {
+                            xyz: c.xyz.into(),
+                            uv: c.uv.into(),
+                            face: Some(f.clone()),
+                        })
+                        .collect(),
+                    frame: frame.clone(),
+                    held_out: i >= n_fit,
+                })
+                .collect(),
+        };
+        write_json(&spec.run_dir.join("observations.json"), &raw)
     };
-    write_json(&spec.run_dir.join("observations.json"), &raw)?;
+    write_observations(&accepted)?;
     let views: Vec<ViewRecord> = poses.iter().map(|p| p.record.clone()).collect();
     let mut coverage = Coverage::new(info.width, info.height, cfg.qa.coverage_grid);
     for v in &fit {
@@ -709,6 +716,31 @@ fn solve_and_judge(
                 Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
             }
         }
+    }
+    // The corners fitted again in the undistorted coordinates of the solved lens (unbiased where
+    // distortion bends the edges; issue 19), kept when the solve's residuals fall.
+    let recorded: Vec<_> = (poses.iter())
+        .filter_map(|p| {
+            Some(crate::detect::undistorted::Recorded {
+                name: &p.view.as_ref()?.0.name,
+                frame: spec.run_dir.join("session").join(p.record.frame.as_ref()?),
+                detection: p.detection.as_ref()?,
+            })
+        })
+        .collect();
+    if recorded.len() == accepted.len()
+        && let Some(views) = crate::detect::undistorted::refit_recorded(&recorded, &cal.camera)
+        && let Ok(c) = crate::calib::solve(&views[..n_fit], image_size, &opts)
+        && c.rms_px < cal.rms_px
+    {
+        tracing::info!(
+            before = cal.rms_px,
+            after = c.rms_px,
+            "corners refitted with the lens"
+        );
+        (fit, held, cal) = (views[..n_fit].to_vec(), views[n_fit..].to_vec(), c);
+        (accepted.iter_mut().zip(views)).for_each(|(a, v)| a.0 = v);
+        write_observations(&accepted)?;
     }
     let mut held_out = Vec::new();
     let mut held_failures = Vec::new();

@@ -1,0 +1,118 @@
+//! The detector under strong barrel distortion with the rig near the image corners (issue 19), on
+//! renders with exact ground truth ([`EvalSet::PeripheryK1m03`], [`EvalSet::PeripheryK1m04`]), and
+//! the refit in undistorted coordinates ([`refine_with_camera`]) with a camera calibrated from the
+//! detected corners, as a user gets it. The full 24-frame figures come from
+//! `REREFINE=1 cargo run --release --example detect_eval -- periphery-0.4 24 DIR`.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stderr)]
+
+use cubecal::calib::{SolveOptions, solve};
+use cubecal::capture::synthetic::{GroundTruth, ground_truth, render};
+use cubecal::detect::score::{Bias, EvalSet, FaceScore, Summary, in_border_band, score};
+use cubecal::detect::{CornerFinder, FrameDetection, detect, refine_with_camera};
+use cubecal::rig::Rig;
+
+fn rig() -> Rig {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/fixtures/rigs/cube_outside.toml"
+    );
+    Rig::load(std::path::Path::new(path)).unwrap().0
+}
+
+struct Frame {
+    img: image::GrayImage,
+    det: FrameDetection,
+    truth: GroundTruth,
+}
+
+fn frames(set: EvalSet, rig: &Rig, n: usize) -> Vec<Frame> {
+    let (camera, settings) = (set.camera(), set.settings());
+    let mut finder = CornerFinder::new().unwrap();
+    set.poses(rig, n)
+        .iter()
+        .enumerate()
+        .map(|(k, pose)| {
+            let img = render(rig, &camera, pose, &settings, k as u64).unwrap();
+            let truth = ground_truth(rig, &camera, pose, &settings, k as u64);
+            let det = detect(&mut finder, &img, rig).unwrap();
+            Frame { img, det, truth }
+        })
+        .collect()
+}
+
+fn scores(rig: &Rig, frames: &[Frame], dets: &[FrameDetection]) -> Vec<FaceScore> {
+    frames
+        .iter()
+        .zip(dets)
+        .flat_map(|(f, d)| score(rig, &f.truth, d))
+        .collect()
+}
+
+/// The corners fitted again with a camera solved from `dets`.
+fn refit_with_solved_camera(
+    set: EvalSet,
+    frames: &[Frame],
+    dets: &[FrameDetection],
+) -> Vec<FrameDetection> {
+    let size = set.camera().image_size;
+    let views: Vec<_> = dets
+        .iter()
+        .enumerate()
+        .filter(|(_, d)| !d.faces.is_empty())
+        .map(|(k, d)| d.to_view(&format!("frame {k}")))
+        .collect();
+    let cal = solve(&views, size, &SolveOptions::default()).unwrap();
+    frames
+        .iter()
+        .zip(dets)
+        .map(|(f, d)| {
+            let mut d = d.clone();
+            let r = refine_with_camera(&f.img, &mut d, &cal.camera).unwrap();
+            assert!(r.refitted as f64 >= 0.95 * r.corners as f64, "{r:?}");
+            d
+        })
+        .collect()
+}
+
+#[test]
+fn peripheral_corners_at_k1_minus_0_3_carry_no_bias() {
+    let set = EvalSet::PeripheryK1m03;
+    let rig = rig();
+    let frames = frames(set, &rig, 8);
+    let size = set.camera().image_size;
+    let plain: Vec<_> = frames.iter().map(|f| f.det.clone()).collect();
+    let refit = refit_with_solved_camera(set, &frames, &plain);
+    for (label, dets) in [
+        ("detector", &plain),
+        ("refit with the solved camera", &refit),
+    ] {
+        let s = scores(&rig, &frames, dets);
+        let outer = Bias::of(&s, size, 75.0, |t| in_border_band(t, size, 0.1));
+        let below = Summary::of(&s, 0.0, 75.0);
+        eprintln!("k1 −0.3, {label}: outer 10 %: {outer}; faces < 75°: {below}");
+        assert!(outer.corners >= 200, "{outer}");
+        assert!(outer.mean_px() <= 0.05, "{outer}");
+        assert_eq!(below.mislabelled, 0);
+        assert!(below.rms_px <= 0.03, "{below}");
+    }
+}
+
+#[test]
+fn strong_distortion_at_the_image_corners_is_measured_accurately() {
+    let set = EvalSet::PeripheryK1m04;
+    let rig = rig();
+    let frames = frames(set, &rig, 8);
+    let plain: Vec<_> = frames.iter().map(|f| f.det.clone()).collect();
+    let refit = refit_with_solved_camera(set, &frames, &plain);
+    for (label, dets) in [
+        ("detector", &plain),
+        ("refit with the solved camera", &refit),
+    ] {
+        let s = scores(&rig, &frames, dets);
+        let below = Summary::of(&s, 0.0, 75.0);
+        eprintln!("k1 −0.4, {label}: faces < 75°: {below}");
+        assert_eq!(below.mislabelled, 0);
+        assert!(below.faces >= 5, "{below}");
+        assert!(below.rms_px <= 0.05, "{below}");
+    }
+}
