@@ -700,21 +700,21 @@ fn solve_and_judge(
             return Ok(result);
         }
     };
-    if cfg.solve.fix_undetermined_k3 {
-        if let Some(k3) = crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3) {
-            let (k3, k3_sd) = (k3.value, k3.std_dev);
-            opts.fix.k3 = true;
-            match notify::alive_during(sink, SOLVE_LIMIT, || {
-                crate::calib::solve(&fit, image_size, &opts)
-            }) {
-                Ok(c) => {
-                    notes.push(format!(
-                        "k3 fixed at 0: these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}); add poses with the rig near the image corners to estimate it"
-                    ));
-                    cal = c;
-                }
-                Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
+    if cfg.solve.fix_undetermined_k3
+        && let Some(k3) = crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3)
+    {
+        let (k3, k3_sd) = (k3.value, k3.std_dev);
+        opts.fix.k3 = true;
+        match notify::alive_during(sink, SOLVE_LIMIT, || {
+            crate::calib::solve(&fit, image_size, &opts)
+        }) {
+            Ok(c) => {
+                notes.push(format!(
+                    "k3 fixed at 0: these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}); add poses with the rig near the image corners to estimate it"
+                ));
+                cal = c;
             }
+            Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
         }
     }
     // The corners fitted again in the undistorted coordinates of the solved lens (unbiased where
