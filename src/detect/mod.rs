@@ -19,9 +19,14 @@ use nalgebra::Vector2;
 
 pub use front::CornerFinder;
 
+mod alone;
 pub mod complete;
+mod dense;
+mod extent;
+pub mod fold;
 pub mod front;
 pub mod grid;
+mod identity;
 pub mod label;
 pub mod overlay;
 pub mod place;
