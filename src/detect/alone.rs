@@ -16,9 +16,8 @@
 //!
 //! Every placement on every face — quarter turn (after the handedness correction, so no mirror
 //! images) and offset that keeps the grid on the face — must put each side that **ends** on the
-//! face's outermost line, each side that **continues** inside the face, and each side that is **cut**
-//! anywhere (the face continues beyond the
-//! frame, or ends exactly at the border), show the face's square colours (white minus black at least
+//! face's outermost line, and each side that **continues** or is **cut** inside the face (a face that
+//! would end exactly at the border could as well be a larger board: not placed), show the face's square colours (white minus black at least
 //! [`MIN_COLOUR_CONTRAST`]), and, through the homography of the grid, put every corner of the face
 //! the grid lacks outside the frame or within one step of its border. Exactly one placement must
 //! remain, else the grid is rejected with the count ("ambiguous").
@@ -123,7 +122,7 @@ pub(super) fn place_alone(
                         dc + t.cols == face.cols,
                     ];
                     if (0..4).any(|k| {
-                        (e[k] == End::Ends && !outer[k]) || (e[k] == End::Continues && outer[k])
+                        (e[k] == End::Ends && !outer[k]) || (e[k] != End::Ends && outer[k])
                     }) {
                         continue;
                     }

@@ -432,6 +432,7 @@ pub(super) fn identify(rig: &Rig, wholes: Vec<Whole>) -> (Vec<FaceDetection>, Ve
                         w.dense.cols,
                         names(rig, w.candidates.iter().map(|c| c.0.face))
                     ),
+                    corners: w.dense.grid_corners(),
                 });
             }
         }
@@ -452,7 +453,10 @@ pub(super) fn identify(rig: &Rig, wholes: Vec<Whole>) -> (Vec<FaceDetection>, Ve
                         w.dense.rows, w.dense.cols
                     )
                 };
-                rejected.push(Rejection { reason });
+                rejected.push(Rejection {
+                    reason,
+                    corners: w.dense.grid_corners(),
+                });
             }
         }
     }
@@ -462,11 +466,12 @@ pub(super) fn identify(rig: &Rig, wholes: Vec<Whole>) -> (Vec<FaceDetection>, Ve
     }
     // A face found twice is a contradiction: drop both.
     let dup = repeated(found.iter().map(|(f, _, _)| f.face));
-    found.retain(|(f, _, _)| {
+    found.retain(|(f, d, _)| {
         let keep = !dup.contains(&f.face);
         if !keep {
             rejected.push(Rejection {
                 reason: format!("face '{}' matched by two grids", rig.faces[f.face].name),
+                corners: d.grid_corners(),
             });
         }
         keep
@@ -474,7 +479,11 @@ pub(super) fn identify(rig: &Rig, wholes: Vec<Whole>) -> (Vec<FaceDetection>, Ve
     if found.len() >= 2
         && let Err(reason) = check_geometry(rig, &found)
     {
-        rejected.push(Rejection { reason });
+        // Every grid of the contradicted labelling is shown with the reason.
+        rejected.extend(found.iter().map(|(_, d, _)| Rejection {
+            reason: reason.clone(),
+            corners: d.grid_corners(),
+        }));
         return (Vec::new(), rejected);
     }
     (found.into_iter().map(|f| f.0).collect(), rejected)

@@ -53,9 +53,44 @@ pub struct FaceDetection {
 }
 
 /// Why a grid (or the frame) was not used.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Rejection {
     pub reason: String,
+    /// The rejected grid's corners in its own row/column indices (empty for a rejection of the whole
+    /// frame, such as "no checkerboard grid found").
+    pub corners: Vec<GridCorner>,
+}
+
+/// A corner of a rejected grid: its index in the grid (not a face's) and its image position.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GridCorner {
+    pub row: usize,
+    pub col: usize,
+    pub uv: Vector2<f64>,
+}
+
+impl Rejection {
+    /// A rejection of the frame as a whole (no grid to show).
+    pub fn frame(reason: String) -> Rejection {
+        Rejection {
+            reason,
+            corners: Vec::new(),
+        }
+    }
+}
+
+impl Dense {
+    /// The grid's corners for a rejection.
+    pub(super) fn grid_corners(&self) -> Vec<GridCorner> {
+        (0..self.rows)
+            .flat_map(|r| (0..self.cols).map(move |c| (r, c)))
+            .map(|(row, col)| GridCorner {
+                row,
+                col,
+                uv: self.at(row, col),
+            })
+            .collect()
+    }
 }
 
 /// Label the grids of one frame against the rig.
@@ -71,10 +106,10 @@ pub fn label(
     for Piece { grid: g, folds } in &pieces {
         let mut folds = *folds;
         if g.count() == 0 {
-            rejected.push(Rejection {
-                reason: "a lattice of X-corners was found but none of its corners fits a checkerboard corner"
+            rejected.push(Rejection::frame(
+                "a lattice of X-corners was found but none of its corners fits a checkerboard corner"
                     .into(),
-            });
+            ));
             continue;
         }
         if g.count() != g.rows * g.cols || g.rows < MIN_LINES || g.cols < MIN_LINES {
@@ -112,7 +147,10 @@ pub fn label(
         }
         match identity::by_colours(img, rig, &dense, &by_size) {
             Ok(candidates) => whole.push(Whole { dense, candidates }),
-            Err(reason) => rejected.push(Rejection { reason }),
+            Err(reason) => rejected.push(Rejection {
+                reason,
+                corners: dense.grid_corners(),
+            }),
         }
     }
     let (faces, mut not_identified) = identity::identify(rig, whole);

@@ -116,12 +116,10 @@ pub fn detect(
         .collect();
     let (faces, mut rejected) = label::label(img, rig, &completed);
     if grids.is_empty() {
-        rejected.push(label::Rejection {
-            reason: format!(
-                "no checkerboard grid found ({} isolated corners)",
-                corners.len()
-            ),
-        });
+        rejected.push(label::Rejection::frame(format!(
+            "no checkerboard grid found ({} isolated corners)",
+            corners.len()
+        )));
     }
     Ok(FrameDetection {
         width: img.width(),

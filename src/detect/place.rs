@@ -45,7 +45,7 @@ use super::grid::MIN_LINES;
 use super::identity::{
     ColourSums, MIN_COLOUR_CONTRAST, dlt_fit, mean_square_intensity, repeated, reprojection_rms,
 };
-use super::label::{FaceDetection, LabelledCorner, Rejection};
+use super::label::{self, FaceDetection, LabelledCorner, Rejection};
 use crate::rig::Rig;
 
 /// The best placement's geometric RMS must be this many times smaller than any other's.
@@ -92,6 +92,17 @@ impl Partial {
             corners,
             reason,
         }
+    }
+
+    fn grid_corners(&self) -> Vec<label::GridCorner> {
+        self.corners
+            .iter()
+            .map(|g| label::GridCorner {
+                row: g.r,
+                col: g.c,
+                uv: g.uv,
+            })
+            .collect()
     }
 
     fn index(&self) -> Vec<Option<usize>> {
@@ -254,6 +265,7 @@ pub(super) fn place(
             Ok(f) => placed.push(f),
             Err(why) => rejected.push(Rejection {
                 reason: format!("{}; not placed on the rig: {why}", p.reason),
+                corners: p.grid_corners(),
             }),
         }
     }
@@ -266,6 +278,15 @@ pub(super) fn place(
                     "face '{}' placed by two partial grids",
                     rig.faces[f.face].name
                 ),
+                corners: f
+                    .corners
+                    .iter()
+                    .map(|c| label::GridCorner {
+                        row: c.row,
+                        col: c.col,
+                        uv: c.uv,
+                    })
+                    .collect(),
             });
         }
         keep

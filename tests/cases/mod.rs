@@ -30,7 +30,10 @@ use nalgebra::{Rotation3, Unit, Vector3};
 #[derive(Debug, Clone)]
 pub struct Case {
     pub name: &'static str,
+    /// The rig the frames are detected (and scored) with.
     pub rig: Rig,
+    /// What is rendered: the rig itself, or a scene whose first faces are the rig's.
+    pub scene: Rig,
     pub camera: Camera,
     pub settings: RenderSettings,
     pub poses: Vec<Pose>,
@@ -149,6 +152,7 @@ pub fn cases(n: usize) -> Vec<Case> {
         let poses = random_poses(&rig, &camera, n, 11);
         out.push(Case {
             name: "nomargin",
+            scene: rig.clone(),
             rig,
             camera,
             settings: settings(11),
@@ -176,6 +180,7 @@ pub fn cases(n: usize) -> Vec<Case> {
             .collect();
         out.push(Case {
             name,
+            scene: rig.clone(),
             rig,
             camera: cam,
             settings: settings(12),
@@ -188,6 +193,7 @@ pub fn cases(n: usize) -> Vec<Case> {
         let poses = random_poses(&rig, &camera, n, 13);
         out.push(Case {
             name: "inside-corner",
+            scene: rig.clone(),
             rig,
             camera,
             settings: settings(13),
@@ -200,6 +206,7 @@ pub fn cases(n: usize) -> Vec<Case> {
         let poses = random_poses(&rig, &camera, n, 14);
         out.push(Case {
             name: "wrapped-cube",
+            scene: rig.clone(),
             rig,
             camera,
             settings: settings(14),
@@ -226,9 +233,34 @@ pub fn cases(n: usize) -> Vec<Case> {
             .collect();
         out.push(Case {
             name: "cut",
+            scene: rig.clone(),
             rig,
             camera,
             settings: settings(15),
+            poses,
+        });
+    }
+    {
+        // The rig's board beside a larger board of the same squares: random views of both, and views
+        // turned toward the larger board so that the rig's board leaves the frame.
+        let scene = rig("two_boards_scene.toml");
+        let rig = rig("board_13x12.toml");
+        let camera = camera(1280, 960, 1100.0, -0.1);
+        let mut poses = random_poses(&scene, &camera, n.div_ceil(2), 16);
+        let base = default_view(&scene, &camera);
+        for (k, deg) in [-24.0, -38.0, -43.0].into_iter().enumerate().take(n / 2) {
+            poses.push(panned(
+                &base,
+                Vector3::new(0.02 * k as f64, -1.0, 0.05),
+                deg,
+            ));
+        }
+        out.push(Case {
+            name: "two-boards",
+            rig,
+            scene,
+            camera,
+            settings: settings(16),
             poses,
         });
     }
@@ -240,7 +272,7 @@ pub fn frame(case: &Case, k: usize, cache: &Path) -> (GrayImage, GroundTruth) {
     let dir: PathBuf = cache.join(case.name);
     std::fs::create_dir_all(&dir).expect("cache directory");
     let truth = ground_truth(
-        &case.rig,
+        &case.scene,
         &case.camera,
         &case.poses[k],
         &case.settings,
@@ -256,7 +288,7 @@ pub fn frame(case: &Case, k: usize, cache: &Path) -> (GrayImage, GroundTruth) {
         return (img.to_luma8(), truth);
     }
     let img = render(
-        &case.rig,
+        &case.scene,
         &case.camera,
         &case.poses[k],
         &case.settings,
