@@ -19,7 +19,6 @@ use nalgebra::Vector2;
 
 pub use front::CornerFinder;
 
-mod alone;
 pub mod complete;
 mod dense;
 mod extent;

@@ -478,6 +478,45 @@ mod tests {
     }
 
     #[test]
+    fn rejected_grids_are_dashed_with_their_number_and_the_legend_names_the_faces() {
+        use crate::detect::label::{GridCorner, Rejection};
+        let (img, mut det) = frame(400, 300, vec![face(1, [300.0, 200.0], 20.0)]);
+        // A 2×3 rejected grid, rows 40 px apart, from (100, 150).
+        det.rejected.push(Rejection {
+            reason: "incomplete grid (5 of 2×3 corners); not placed on the rig: because".into(),
+            corners: (0..2)
+                .flat_map(|r| (0..3).map(move |c| (r, c)))
+                .map(|(row, col)| GridCorner {
+                    row,
+                    col,
+                    uv: Vector2::new(100.0 + 40.0 * col as f64, 150.0 + 40.0 * row as f64),
+                })
+                .collect(),
+        });
+        let out = draw_annotated(&img, &det, &rig()).unwrap();
+        let white = |x: u32, y: u32| out.get_pixel(x, y).0 == REJECTED;
+        // Along the first row (y = 150) from x = 100: dashes of DASH_PX on and off.
+        let on: Vec<bool> = (100..180).map(|x| white(x, 150)).collect();
+        let lit = on.iter().filter(|&&b| b).count();
+        assert!((30..=56).contains(&lit), "{lit} of 80 px lit");
+        assert!(on[2] && !on[9] && on[14], "{on:?}");
+        // The found face keeps its colour; the legend (top left) has both face colours in it.
+        assert_eq!(*out.get_pixel(300, 200), face_colour(1));
+        let legend = |c: Rgb<u8>| {
+            (0..60).any(|y| {
+                (0..200).any(|x| {
+                    let p = out.get_pixel(x, y).0;
+                    p.iter()
+                        .zip(c.0)
+                        .all(|(a, b)| (i32::from(*a) - i32::from(b)).abs() < 40)
+                })
+            })
+        };
+        assert!(legend(face_colour(0)) && legend(face_colour(1)));
+        assert_eq!(short_reason(&det.rejected[0].reason), "incomplete grid");
+    }
+
+    #[test]
     fn grey_frame_without_faces_is_copied_unchanged() {
         let (img, det) = frame(40, 30, Vec::new());
         let out = draw(&img, &det, &rig());

@@ -38,10 +38,7 @@
 use image::GrayImage;
 use nalgebra::{Vector2, Vector3};
 
-use super::alone::place_alone;
 use super::complete::{Completed, median};
-use super::dense::Dense;
-use super::grid::MIN_LINES;
 use super::identity::{
     ColourSums, MIN_COLOUR_CONTRAST, dlt_fit, mean_square_intensity, repeated, reprojection_rms,
 };
@@ -144,58 +141,6 @@ impl Partial {
                 .collect(),
             reason: self.reason.clone(),
         }
-    }
-
-    /// The largest complete rectangle left after dropping outer lines with missing corners (those
-    /// along the frame border, usually), as a handedness-corrected dense grid; `None` when fewer than
-    /// [`MIN_LINES`] lines remain either way, or a corner inside is missing. Also says which sides
-    /// lost a line (in the dense grid's order: first row, last row, first column, last column).
-    fn trimmed(&self) -> Option<(Dense, [bool; 4])> {
-        let idx = self.index();
-        let (mut r0, mut r1, mut c0, mut c1) = (0, self.rows, 0, self.cols);
-        let missing = |r: usize, c: usize| idx[r * self.cols + c].is_none();
-        loop {
-            if r1 - r0 < MIN_LINES || c1 - c0 < MIN_LINES {
-                return None;
-            }
-            let holes = [
-                (c0..c1).filter(|&c| missing(r0, c)).count(),
-                (c0..c1).filter(|&c| missing(r1 - 1, c)).count(),
-                (r0..r1).filter(|&r| missing(r, c0)).count(),
-                (r0..r1).filter(|&r| missing(r, c1 - 1)).count(),
-            ];
-            let (k, &most) = holes.iter().enumerate().max_by_key(|h| *h.1)?;
-            if most == 0 {
-                break;
-            }
-            match k {
-                0 => r0 += 1,
-                1 => r1 -= 1,
-                2 => c0 += 1,
-                _ => c1 -= 1,
-            }
-        }
-        let (mut uv, mut sigma) = (Vec::new(), Vec::new());
-        for r in r0..r1 {
-            for c in c0..c1 {
-                let g = self.corners[idx[r * self.cols + c]?];
-                uv.push(g.uv);
-                sigma.push(g.sigma_px);
-            }
-        }
-        let d = Dense {
-            rows: r1 - r0,
-            cols: c1 - c0,
-            uv,
-            sigma,
-        };
-        // Sides that lost a line (first row, last row, first column, last column).
-        let cut = [r0 > 0, r1 < self.rows, c0 > 0, c1 < self.cols];
-        Some(if d.handedness() > 0.0 {
-            (d.transposed(), [cut[2], cut[3], cut[0], cut[1]])
-        } else {
-            (d, cut)
-        })
     }
 
     /// Median distance between grid neighbours, px (`None` when no two found corners are neighbours).
@@ -301,12 +246,10 @@ fn place_one(
     p: &Partial,
 ) -> Result<FaceDetection, String> {
     if complete.is_empty() {
-        let (d, lost) = p.trimmed().ok_or(
-            "no completely visible face in the frame to place it against, and no complete rectangle of corners to place it alone",
-        )?;
-        return place_alone(img, rig, &d, lost).map_err(|why| {
-            format!("no completely visible face in the frame to place it against; alone: {why}")
-        });
+        // A lone partial grid is not placed by its own evidence: fuzzing found random content and
+        // another board cut by the border that a face's visible end, square colours and the border
+        // would place (see the report of issue 19).
+        return Err("no completely visible face in the frame to place it against".into());
     }
     if p.corners.len() < MIN_PARTIAL_CORNERS || p.rows < 2 || p.cols < 2 {
         return Err(format!(
