@@ -15,8 +15,14 @@
 //! the fold ends there; there is no margin to prove it), and the corners on the fold line belong to
 //! no face. The strongest fold is cut first and each part is examined again.
 //!
-//! Measured on the wrapped-cube renders of `examples/detect_cases.rs`: see the module doc of
-//! [`super::label`] and the report of issue 19.
+//! Measured with `cargo run --release --example detect_cases -- 6` (wrapped cube: one sheet of 30 mm
+//! squares around a box edge, k1 −0.3): true folds score 0.26–0.58 of a step against a median of
+//! 0.01–0.03 on the same grid; 8 of the 12 faces are found, none mislabelled. On the realistic and
+//! hard cube sets no grid is cut (the figures of `detect_eval` are unchanged). Not seen yet: a fold
+//! with only one line of corners beyond it (the windows need [`WINDOW`] lines on each side), and two
+//! grids assembled separately on either side of a fold (the side at the fold then fails its extent
+//! check). On the real inside corner of `bailus_tsai_cube_stereo` (k1 ≈ −0.24 over a 3000 px frame)
+//! the fold scores 0.28 against a median of 0.11 and is not cut.
 
 use nalgebra::Vector2;
 
