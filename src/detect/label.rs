@@ -6,9 +6,9 @@
 //!    down the 2D cross product of the column and row steps is negative). A grid with the other
 //!    orientation is transposed; mirror-image labellings are thereby impossible.
 //! 2. **Size.** The (complete) grid's rows × cols must equal a face's, directly or rotated by 90°.
-//! 3. **Extent** ([`super::extent`]): the size only means something if the board ends where the
+//! 3. **Extent** (`extent`): the size only means something if the board ends where the
 //!    grid does.
-//! 4. **Identity** ([`super::identity`]): the face and its orientation, by square colours and,
+//! 4. **Identity** (`identity`): the face and its orientation, by square colours and,
 //!    when they leave a choice (faces of equal size, 180°-symmetric faces), by the rig geometry of
 //!    all grids of the frame; with two or more faces the labelling must fit one camera clearly
 //!    better than with any face reversed, or the frame's labelling is dropped.
