@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
-use cubecal::detect::label::LabelledCorner;
+use cubecal::detect::label::{GridCorner, LabelledCorner};
 use cubecal::detect::{self, CornerFinder, FrameDetection, overlay};
 use cubecal::exit;
 use cubecal::rig::Rig;
@@ -118,8 +118,23 @@ struct FaceJson<'a> {
 }
 
 #[derive(Serialize)]
+#[serde(remote = "GridCorner")]
+struct GridCornerJson {
+    row: usize,
+    col: usize,
+    #[serde(serialize_with = "uv_array")]
+    uv: Vector2<f64>,
+}
+
+#[derive(Serialize)]
+struct GridCornerRef<'a>(#[serde(with = "GridCornerJson")] &'a GridCorner);
+
+/// A rejected grid: the reason, and its corners by their index in the grid (not a face's) and image
+/// position (empty for a rejection of the whole frame).
+#[derive(Serialize)]
 struct RejectionJson<'a> {
     reason: &'a str,
+    corners: Vec<GridCornerRef<'a>>,
 }
 
 /// One image in the `--json` array.
@@ -150,7 +165,10 @@ impl<'a> ImageJson<'a> {
             rejected: det
                 .rejected
                 .iter()
-                .map(|r| RejectionJson { reason: &r.reason })
+                .map(|r| RejectionJson {
+                    reason: &r.reason,
+                    corners: r.corners.iter().map(GridCornerRef).collect(),
+                })
                 .collect(),
             time_ms,
         }
@@ -187,7 +205,7 @@ pub fn run(args: DetectArgs, out: Output) -> anyhow::Result<u8> {
         let overlay = match &overlays {
             Some(paths) => {
                 let o = &paths[k];
-                overlay::write_png(&overlay::draw(&img, &detection, &rig), o)?;
+                overlay::write_png(&overlay::draw_annotated(&img, &detection, &rig)?, o)?;
                 Some(o.clone())
             }
             None => None,

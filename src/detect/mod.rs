@@ -11,7 +11,10 @@
 //! [`grid`] links corners into a lattice by growing from seeds along their local axes. [`complete`]
 //! fits every lattice corner with the X-junction model of [`refine`] (window shaped by the lattice,
 //! per-corner σ from the fit) and recovers the corners the front end missed where the lattice
-//! predicts them. [`label`] decides which face each grid is, never guessing; [`score`] measures all of
+//! predicts them. [`label`] decides which face each grid is, never guessing, in one order with each
+//! rule in its own module: [`fold`] cuts lattices that bend from one plane to another, `extent` proves
+//! where a grid ends, `identity` names the face by size, colours and the geometry of all grids of the
+//! frame, and [`place`] places partial grids through the faces found; [`score`] measures all of
 //! this against the ground truth of synthetic renders. Once a calibration exists,
 //! [`refine_with_camera`] ([`undistorted`]) fits the labelled corners again in undistorted
 //! coordinates, where lens distortion no longer bends their edges.
@@ -22,8 +25,12 @@ use nalgebra::Vector2;
 pub use front::CornerFinder;
 
 pub mod complete;
+mod dense;
+mod extent;
+pub mod fold;
 pub mod front;
 pub mod grid;
+mod identity;
 pub mod label;
 pub mod overlay;
 pub mod place;
@@ -118,12 +125,10 @@ pub fn detect(
         .collect();
     let (faces, mut rejected) = label::label(img, rig, &completed);
     if grids.is_empty() {
-        rejected.push(label::Rejection {
-            reason: format!(
-                "no checkerboard grid found ({} isolated corners)",
-                corners.len()
-            ),
-        });
+        rejected.push(label::Rejection::frame(format!(
+            "no checkerboard grid found ({} isolated corners)",
+            corners.len()
+        )));
     }
     Ok(FrameDetection {
         width: img.width(),

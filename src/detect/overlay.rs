@@ -41,6 +41,16 @@ pub const ORIGIN_HALF_PX: i64 = 4;
 /// The orientation arrow reaches this fraction of the way from corner `(0, 0)` toward `(0, 1)`.
 pub const ARROW_FRACTION: f64 = 0.7;
 
+/// Colour of rejected grids (dashed) and their reasons.
+pub const REJECTED: [u8; 3] = [255, 255, 255];
+/// Length of a dash (and of the gap after it) of a rejected grid's lines (px).
+pub const DASH_PX: f64 = 6.0;
+/// Longest reason written beside a rejected grid (characters; the full reason is in the text and
+/// JSON output).
+pub const SHORT_REASON_CHARS: usize = 48;
+/// Text height of the legend and of the reasons (px).
+pub const TEXT_PX: u32 = 14;
+
 /// Errors writing an overlay file.
 #[derive(Debug, thiserror::Error)]
 pub enum OverlayError {
@@ -50,6 +60,8 @@ pub enum OverlayError {
         #[source]
         source: image::ImageError,
     },
+    #[error("cannot draw the overlay's text: {reason}")]
+    Text { reason: String },
     #[error("cannot write overlay {path}")]
     Write {
         path: PathBuf,
@@ -63,7 +75,9 @@ impl OverlayError {
     /// a result file in cubecal, this is [`crate::exit::INTERNAL`].
     pub fn exit_code(&self) -> u8 {
         match self {
-            OverlayError::Encode { .. } | OverlayError::Write { .. } => crate::exit::INTERNAL,
+            OverlayError::Encode { .. }
+            | OverlayError::Write { .. }
+            | OverlayError::Text { .. } => crate::exit::INTERNAL,
         }
     }
 }
@@ -127,6 +141,165 @@ pub fn draw(img: &GrayImage, det: &FrameDetection, rig: &Rig) -> RgbImage {
         }
     }
     out
+}
+
+/// The first clause of a rejection's reason, at most [`SHORT_REASON_CHARS`] characters.
+pub fn short_reason(reason: &str) -> String {
+    let first = reason
+        .split(['(', ';', ':'])
+        .next()
+        .unwrap_or(reason)
+        .trim();
+    if first.chars().count() <= SHORT_REASON_CHARS {
+        first.to_string()
+    } else {
+        let cut: String = first.chars().take(SHORT_REASON_CHARS - 1).collect();
+        format!("{cut}…")
+    }
+}
+
+/// [`draw`], plus every rejected grid of `det` drawn dashed in [`REJECTED`] with its number and
+/// short reason beside it, and a legend in the top left corner: every face of the rig in its colour
+/// (with its corner count when found) and the numbered reasons of the rejected grids.
+pub fn draw_annotated(
+    img: &GrayImage,
+    det: &FrameDetection,
+    rig: &Rig,
+) -> Result<RgbImage, OverlayError> {
+    use plotters::prelude::*;
+
+    let mut out = draw(img, det, rig);
+    let white = Rgb(REJECTED);
+    let mut labels: Vec<(Vector2<f64>, String)> = Vec::new();
+    for (k, r) in det.rejected.iter().enumerate() {
+        if r.corners.is_empty() {
+            continue;
+        }
+        let at: HashMap<(usize, usize), Vector2<f64>> =
+            r.corners.iter().map(|c| ((c.row, c.col), c.uv)).collect();
+        for (&(row, col), &p) in &at {
+            for next in [(row, col + 1), (row + 1, col)] {
+                if let Some(&q) = at.get(&next) {
+                    dashed(&mut out, p, q, white);
+                }
+            }
+            stamp(&mut out, p, 1, white);
+        }
+        // The reason's number goes next to the grid's top-left-most corner.
+        let anchor = r
+            .corners
+            .iter()
+            .map(|c| c.uv)
+            .filter(|p| p.x.is_finite() && p.y.is_finite())
+            .min_by(|a, b| (a.x + a.y).total_cmp(&(b.x + b.y)));
+        if let Some(p) = anchor {
+            labels.push((p, format!("#{}", k + 1)));
+        }
+    }
+    register_font()?;
+    let (w, h) = out.dimensions();
+    let mut buf = out.into_raw();
+    {
+        let text_err = |e: &dyn std::fmt::Display| OverlayError::Text {
+            reason: e.to_string(),
+        };
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        let size = TEXT_PX as i32;
+        let font = |c: [u8; 3]| {
+            ("sans-serif", size)
+                .into_font()
+                .color(&RGBColor(c[0], c[1], c[2]))
+        };
+        for (p, text) in &labels {
+            let (x, y) = (p.x.round() as i32 - 2 * size, p.y.round() as i32 - size);
+            root.draw(&Text::new(text.clone(), (x, y), font(REJECTED)))
+                .map_err(|e| text_err(&e))?;
+        }
+        // Legend: faces, then the numbered reasons, on a dark band for contrast.
+        let mut lines: Vec<([u8; 3], String)> = rig
+            .faces
+            .iter()
+            .enumerate()
+            .map(|(i, f)| {
+                let n: usize = det
+                    .faces
+                    .iter()
+                    .filter(|d| d.face == i)
+                    .map(|d| d.corners.len())
+                    .sum();
+                let text = if n > 0 {
+                    format!("■ {} ({n} corners)", f.name)
+                } else {
+                    format!("■ {} (not found)", f.name)
+                };
+                (face_colour(i).0, text)
+            })
+            .collect();
+        for (k, r) in det.rejected.iter().enumerate() {
+            lines.push((
+                REJECTED,
+                format!("#{} rejected: {}", k + 1, short_reason(&r.reason)),
+            ));
+        }
+        let line_h = size + 4;
+        let width = lines
+            .iter()
+            .map(|l| l.1.chars().count() as i32 * size * 6 / 10)
+            .max()
+            .unwrap_or(0)
+            + 8;
+        root.draw(&Rectangle::new(
+            [(0, 0), (width, line_h * lines.len() as i32 + 10)],
+            RGBColor(0, 0, 0).mix(0.6).filled(),
+        ))
+        .map_err(|e| text_err(&e))?;
+        for (i, (c, text)) in lines.iter().enumerate() {
+            root.draw(&Text::new(
+                text.clone(),
+                (4, 5 + line_h * i as i32),
+                font(*c),
+            ))
+            .map_err(|e| text_err(&e))?;
+        }
+        root.present().map_err(|e| text_err(&e))?;
+    }
+    RgbImage::from_raw(w, h, buf).ok_or_else(|| OverlayError::Text {
+        reason: "the drawing buffer changed size".into(),
+    })
+}
+
+/// Register the embedded DejaVu Sans as plotters' `sans-serif` (once per process; the report's
+/// plots register the same font under the same name).
+fn register_font() -> Result<(), OverlayError> {
+    static DONE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    let ok = *DONE.get_or_init(|| {
+        plotters::style::register_font(
+            "sans-serif",
+            plotters::style::FontStyle::Normal,
+            dejavu::sans::regular(),
+        )
+        .is_ok()
+    });
+    ok.then_some(()).ok_or_else(|| OverlayError::Text {
+        reason: "the embedded DejaVu Sans font could not be parsed".into(),
+    })
+}
+
+/// A dashed 1 px segment `a → b` ([`DASH_PX`] on, [`DASH_PX`] off), clipped to the image.
+fn dashed(img: &mut RgbImage, a: Vector2<f64>, b: Vector2<f64>, colour: Rgb<u8>) {
+    let lo = Vector2::new(-1.0, -1.0);
+    let hi = Vector2::new(f64::from(img.width()) + 1.0, f64::from(img.height()) + 1.0);
+    let Some((a, b)) = clip(a, b, lo, hi) else {
+        return;
+    };
+    let len = (b - a).norm();
+    let n = (len * 2.0).ceil().max(1.0) as usize;
+    for i in 0..=n {
+        let t = i as f64 / n as f64;
+        if (t * len).rem_euclid(2.0 * DASH_PX) < DASH_PX {
+            stamp(img, a + (b - a) * t, 0, colour);
+        }
+    }
 }
 
 /// Encode `overlay` as PNG and write it to `path` atomically (temporary file, then rename).
@@ -302,6 +475,45 @@ mod tests {
             rejected: Vec::new(),
         };
         (img, det)
+    }
+
+    #[test]
+    fn rejected_grids_are_dashed_with_their_number_and_the_legend_names_the_faces() {
+        use crate::detect::label::{GridCorner, Rejection};
+        let (img, mut det) = frame(400, 300, vec![face(1, [300.0, 200.0], 20.0)]);
+        // A 2×3 rejected grid, rows 40 px apart, from (100, 150).
+        det.rejected.push(Rejection {
+            reason: "incomplete grid (5 of 2×3 corners); not placed on the rig: because".into(),
+            corners: (0..2)
+                .flat_map(|r| (0..3).map(move |c| (r, c)))
+                .map(|(row, col)| GridCorner {
+                    row,
+                    col,
+                    uv: Vector2::new(100.0 + 40.0 * col as f64, 150.0 + 40.0 * row as f64),
+                })
+                .collect(),
+        });
+        let out = draw_annotated(&img, &det, &rig()).unwrap();
+        let white = |x: u32, y: u32| out.get_pixel(x, y).0 == REJECTED;
+        // Along the first row (y = 150) from x = 100: dashes of DASH_PX on and off.
+        let on: Vec<bool> = (100..180).map(|x| white(x, 150)).collect();
+        let lit = on.iter().filter(|&&b| b).count();
+        assert!((30..=56).contains(&lit), "{lit} of 80 px lit");
+        assert!(on[2] && !on[9] && on[14], "{on:?}");
+        // The found face keeps its colour; the legend (top left) has both face colours in it.
+        assert_eq!(*out.get_pixel(300, 200), face_colour(1));
+        let legend = |c: Rgb<u8>| {
+            (0..60).any(|y| {
+                (0..200).any(|x| {
+                    let p = out.get_pixel(x, y).0;
+                    p.iter()
+                        .zip(c.0)
+                        .all(|(a, b)| (i32::from(*a) - i32::from(b)).abs() < 40)
+                })
+            })
+        };
+        assert!(legend(face_colour(0)) && legend(face_colour(1)));
+        assert_eq!(short_reason(&det.rejected[0].reason), "incomplete grid");
     }
 
     #[test]

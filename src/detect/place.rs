@@ -39,10 +39,10 @@ use image::GrayImage;
 use nalgebra::{Vector2, Vector3};
 
 use super::complete::{Completed, median};
-use super::label::{
-    ColourSums, FaceDetection, LabelledCorner, MIN_COLOUR_CONTRAST, Rejection, dlt_fit,
-    mean_square_intensity, repeated, reprojection_rms,
+use super::identity::{
+    ColourSums, MIN_COLOUR_CONTRAST, dlt_fit, mean_square_intensity, repeated, reprojection_rms,
 };
+use super::label::{self, FaceDetection, LabelledCorner, Rejection};
 use crate::rig::Rig;
 
 /// The best placement's geometric RMS must be this many times smaller than any other's.
@@ -89,6 +89,17 @@ impl Partial {
             corners,
             reason,
         }
+    }
+
+    fn grid_corners(&self) -> Vec<label::GridCorner> {
+        self.corners
+            .iter()
+            .map(|g| label::GridCorner {
+                row: g.r,
+                col: g.c,
+                uv: g.uv,
+            })
+            .collect()
     }
 
     fn index(&self) -> Vec<Option<usize>> {
@@ -199,6 +210,7 @@ pub(super) fn place(
             Ok(f) => placed.push(f),
             Err(why) => rejected.push(Rejection {
                 reason: format!("{}; not placed on the rig: {why}", p.reason),
+                corners: p.grid_corners(),
             }),
         }
     }
@@ -211,6 +223,15 @@ pub(super) fn place(
                     "face '{}' placed by two partial grids",
                     rig.faces[f.face].name
                 ),
+                corners: f
+                    .corners
+                    .iter()
+                    .map(|c| label::GridCorner {
+                        row: c.row,
+                        col: c.col,
+                        uv: c.uv,
+                    })
+                    .collect(),
             });
         }
         keep
@@ -225,6 +246,9 @@ fn place_one(
     p: &Partial,
 ) -> Result<FaceDetection, String> {
     if complete.is_empty() {
+        // A lone partial grid is not placed by its own evidence: fuzzing found random content and
+        // another board cut by the border that a face's visible end, square colours and the border
+        // would place (see the report of issue 19).
         return Err("no completely visible face in the frame to place it against".into());
     }
     if p.corners.len() < MIN_PARTIAL_CORNERS || p.rows < 2 || p.cols < 2 {
