@@ -728,9 +728,16 @@ fn solve_and_judge(
             })
         })
         .collect();
-    if recorded.len() == accepted.len()
-        && let Some(views) = crate::detect::undistorted::refit_recorded(&recorded, &cal.camera)
-        && let Ok(c) = crate::calib::solve(&views[..n_fit], image_size, &opts)
+    let refitted = (recorded.len() == accepted.len())
+        .then(|| {
+            notify::alive_during(sink, SOLVE_LIMIT, || {
+                let views = crate::detect::undistorted::refit_recorded(&recorded, &cal.camera)?;
+                let c = crate::calib::solve(&views[..n_fit], image_size, &opts).ok()?;
+                Some((views, c))
+            })
+        })
+        .flatten();
+    if let Some((views, c)) = refitted
         && c.rms_px < cal.rms_px
     {
         tracing::info!(
