@@ -62,6 +62,28 @@ pub struct CalibrateArgs {
     pub set: Vec<String>,
 }
 
+impl CalibrateArgs {
+    /// The arguments of a run from `config` alone (plus `--set` overrides): what `serve` and the
+    /// turntable feeder pass to [`prepare`].
+    pub fn from_config(config: PathBuf, device: Option<PathBuf>, set: Vec<String>) -> Self {
+        CalibrateArgs {
+            config: Some(config),
+            device,
+            replay: None,
+            images: Vec::new(),
+            synthetic: false,
+            turntable: None,
+            rig: None,
+            store: None,
+            out: None,
+            poses: None,
+            sweep_deg: None,
+            device_id: None,
+            set,
+        }
+    }
+}
+
 /// Build the validated config: the file (or, for a replay without --config, the recorded one), then
 /// the flags. Returns the config and the rig's TOML text and path.
 pub fn build_config(

@@ -87,21 +87,11 @@ pub fn run(args: ServeArgs, out: Output) -> anyhow::Result<u8> {
 }
 
 fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow::Result<u8> {
-    let calibrate = CalibrateArgs {
-        config: Some(args.config.clone()),
-        device: Some(args.device.clone()),
-        replay: None,
-        images: Vec::new(),
-        synthetic: false,
-        turntable: None,
-        rig: None,
-        store: None,
-        out: None,
-        poses: None,
-        sweep_deg: None,
-        device_id: None,
-        set: args.set.clone(),
-    };
+    let calibrate = CalibrateArgs::from_config(
+        args.config.clone(),
+        Some(args.device.clone()),
+        args.set.clone(),
+    );
     let super::calibrate::Prepared {
         cfg,
         rig_toml,

@@ -473,23 +473,13 @@ fn feed_setup(args: &FeedArgs, output: &std::path::Path, d: &DriveArgs) -> anyho
         .station_config
         .clone()
         .ok_or_else(|| UsageError("--feed needs --station-config".into()))?;
-    let prepared = super::calibrate::prepare(&super::calibrate::CalibrateArgs {
-        config: Some(station_config.clone()),
-        device: None,
-        replay: None,
-        images: Vec::new(),
-        synthetic: false,
-        turntable: None,
-        rig: None,
-        store: None,
-        out: None,
-        poses: None,
-        sweep_deg: None,
-        device_id: None,
-        // The feeder is this config's synthetic camera: its camera.device (the capture node the
-        // station reads) is not needed here.
-        set: vec!["camera.source=\"synthetic\"".into()],
-    })?;
+    // The feeder is this config's synthetic camera: its camera.device (the capture node the station
+    // reads) is not needed here.
+    let prepared = super::calibrate::prepare(&super::calibrate::CalibrateArgs::from_config(
+        station_config.clone(),
+        None,
+        vec!["camera.source=\"synthetic\"".into()],
+    ))?;
     let cfg = &prepared.cfg;
     let fourcc = cfg.camera.fourcc.as_deref().ok_or_else(|| {
         UsageError(format!(

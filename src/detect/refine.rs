@@ -736,16 +736,7 @@ pub fn refine(
     a: Vector2<f64>,
     b: Vector2<f64>,
 ) -> Result<Refined, RefineFailure> {
-    thread_local! {
-        /// The two stages' windows, kept from one fit to the next (see [`Window`]).
-        static WINDOWS: Cell<[Window; 2]> = Cell::default();
-    }
-    WINDOWS.with(|cell| {
-        let mut windows = cell.take();
-        let result = refine_in(&mut windows, img, p0, a, b, None, false);
-        cell.set(windows);
-        result
-    })
+    refine_reusing(img, p0, a, b, None, false)
 }
 
 /// [`refine`], with the window shrunk about `p0` to fit inside the image where the image border
@@ -758,15 +749,7 @@ pub fn refine_near_border(
     a: Vector2<f64>,
     b: Vector2<f64>,
 ) -> Result<Refined, RefineFailure> {
-    thread_local! {
-        static WINDOWS: Cell<[Window; 2]> = Cell::default();
-    }
-    WINDOWS.with(|cell| {
-        let mut windows = cell.take();
-        let result = refine_in(&mut windows, img, p0, a, b, None, true);
-        cell.set(windows);
-        result
-    })
+    refine_reusing(img, p0, a, b, None, true)
 }
 
 /// A smooth, locally invertible map from image pixels to a plane where the board's edges are
@@ -792,12 +775,25 @@ pub fn refine_mapped(
     b: Vector2<f64>,
     map: &dyn PlaneMap,
 ) -> Result<Refined, RefineFailure> {
+    refine_reusing(img, p0, a, b, Some(map), true)
+}
+
+/// [`refine_in`] with this thread's two stage windows, kept from one fit to the next (see [`Window`]),
+/// shared by every public entry point.
+fn refine_reusing(
+    img: &GrayImage,
+    p0: Vector2<f64>,
+    a: Vector2<f64>,
+    b: Vector2<f64>,
+    map: Option<&dyn PlaneMap>,
+    shrink_at_border: bool,
+) -> Result<Refined, RefineFailure> {
     thread_local! {
         static WINDOWS: Cell<[Window; 2]> = Cell::default();
     }
     WINDOWS.with(|cell| {
         let mut windows = cell.take();
-        let result = refine_in(&mut windows, img, p0, a, b, Some(map), true);
+        let result = refine_in(&mut windows, img, p0, a, b, map, shrink_at_border);
         cell.set(windows);
         result
     })
