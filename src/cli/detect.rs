@@ -228,7 +228,7 @@ pub fn run(args: DetectArgs, out: Output) -> anyhow::Result<u8> {
 }
 
 /// Read and decode an image file (format from its content, not its name) as 8-bit grey.
-fn load_grey(path: &Path) -> Result<GrayImage, DetectCliError> {
+pub(crate) fn load_grey(path: &Path) -> Result<GrayImage, DetectCliError> {
     let bytes = std::fs::read(path).map_err(|source| DetectCliError::ReadImage {
         path: path.to_path_buf(),
         source,

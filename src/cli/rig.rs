@@ -11,7 +11,7 @@ use cubecal::rig::survey::{self, RigSurvey};
 use cubecal::rig::{Rig, svg};
 
 use super::Output;
-use super::detect::DetectCliError;
+use super::detect::{DetectCliError, load_grey};
 use super::solve::ModelArg;
 
 #[derive(Debug, Subcommand)]
@@ -87,18 +87,6 @@ fn expand_frames(inputs: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
         }
     }
     Ok(frames)
-}
-
-fn load_grey(path: &Path) -> Result<image::GrayImage, DetectCliError> {
-    let bytes = std::fs::read(path).map_err(|source| DetectCliError::ReadImage {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let img = image::load_from_memory(&bytes).map_err(|source| DetectCliError::DecodeImage {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    Ok(img.into_luma8())
 }
 
 fn run_survey(args: SurveyArgs, out: Output) -> anyhow::Result<u8> {
