@@ -217,7 +217,7 @@ pub const CURVATURE_MIN_POINTS: usize = 4;
 /// the lattice line through the fitted cell `(r, c)` along `(dr, dc)`: a parabola fitted to the
 /// offsets of the fitted corners within [`CURVATURE_RADIUS`] from their chord. Perspective keeps
 /// lines straight; what bends them is lens distortion, which varies slowly across the image.
-fn lattice_curvature(cells: &Cells, r: i32, c: i32, dr: i32, dc: i32) -> Option<f64> {
+pub(super) fn lattice_curvature(cells: &Cells, r: i32, c: i32, dr: i32, dc: i32) -> Option<f64> {
     let centre = cells.get(&(r, c))?.uv;
     let pts: Vec<Vector2<f64>> = (-CURVATURE_RADIUS..=CURVATURE_RADIUS)
         .filter_map(|k| cells.get(&(r + k * dr, c + k * dc)).map(|f| f.uv - centre))

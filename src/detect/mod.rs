@@ -14,7 +14,8 @@
 //! predicts them. [`label`] decides which face each grid is, never guessing, in one order with each
 //! rule in its own module: [`fold`] cuts lattices that bend from one plane to another, `extent` proves
 //! where a grid ends, `identity` names the face by size, colours and the geometry of all grids of the
-//! frame, and [`place`] places partial grids through the faces found; [`score`] measures all of
+//! frame, and [`place`] places partial grids through the faces found; [`own_lattice`] fits the
+//! corners of a face cut from a larger lattice (at a fold) again on the face's own lattice; [`score`] measures all of
 //! this against the ground truth of synthetic renders. Once a calibration exists,
 //! [`refine_with_camera`] ([`undistorted`]) fits the labelled corners again in undistorted
 //! coordinates, where lens distortion no longer bends their edges.
@@ -33,6 +34,7 @@ pub mod grid;
 mod identity;
 pub mod label;
 pub mod overlay;
+pub mod own_lattice;
 pub mod place;
 pub mod refine;
 pub mod score;
@@ -123,7 +125,8 @@ pub fn detect(
         .iter()
         .map(|g| complete::complete(img, &corners, g, max_lines))
         .collect();
-    let (faces, mut rejected) = label::label(img, rig, &completed);
+    let (mut faces, mut rejected) = label::label(img, rig, &completed);
+    own_lattice::refit_on_own_lattice(img, &completed, &mut faces);
     if grids.is_empty() {
         rejected.push(label::Rejection::frame(format!(
             "no checkerboard grid found ({} isolated corners)",
