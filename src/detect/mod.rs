@@ -111,8 +111,7 @@ pub fn detect(
     img: &GrayImage,
     rig: &crate::rig::Rig,
 ) -> Result<FrameDetection, DetectError> {
-    let corners = finder.find(img)?;
-    let grids = grid::assemble(&corners);
+    let (corners, grids) = grid::find_and_assemble(finder, img)?;
     let max_lines = rig
         .faces
         .iter()
