@@ -376,8 +376,8 @@ pub const SECOND_LOOK_MIN_CORNERS: usize = 8;
 pub const SECOND_LOOK_MAX_AREA: f64 = 0.2;
 
 /// Regions `[x0, y0, x1, y1]` (px, end exclusive) where the front end found corners that no grid
-/// took: tiles of [`SECOND_LOOK_TILE_PX`] with at least [`SECOND_LOOK_TILE_CORNERS`] of them and no
-/// corner of a grid, grown
+/// took: tiles of [`SECOND_LOOK_TILE_PX`] with at least [`SECOND_LOOK_TILE_CORNERS`] of them, more
+/// than corners of a grid, grown
 /// by one tile and joined where they touch, kept when they hold [`SECOND_LOOK_MIN_CORNERS`]; the most
 /// populated first, up to [`SECOND_LOOK_MAX_AREA`] of the frame.
 ///
@@ -404,23 +404,23 @@ pub fn unlinked_regions(
         (x < tw && y < th).then_some(y * tw + x)
     };
     let mut count = vec![0usize; tw * th];
-    let mut has_linked = vec![false; tw * th];
+    let mut linked_count = vec![0usize; tw * th];
     for (c, &l) in corners.iter().zip(&linked) {
         if let Some(k) = tile_of(c) {
             if l {
-                has_linked[k] = true;
+                linked_count[k] += 1;
             } else {
                 count[k] += 1;
             }
         }
     }
-    // Tiles with enough unlinked corners and none linked (among a grid's corners, unlinked ones are
-    // its rejects, not a face the first pass could not resolve), grown by one tile.
+    // Tiles with enough unlinked corners, more than linked ones (among a grid's corners, unlinked
+    // ones are its rejects, not a face the first pass could not resolve), grown by one tile.
     let mut marked = vec![false; tw * th];
     for (k, _) in count
         .iter()
         .enumerate()
-        .filter(|&(k, n)| *n >= SECOND_LOOK_TILE_CORNERS && !has_linked[k])
+        .filter(|&(k, n)| *n >= SECOND_LOOK_TILE_CORNERS && *n > linked_count[k])
     {
         let (x, y) = (k % tw, k / tw);
         for yy in y.saturating_sub(1)..(y + 2).min(th) {
@@ -490,53 +490,41 @@ pub fn unlinked_regions(
 }
 
 /// The front end's corners and their grids, with a second, full-resolution look
-/// ([`CornerFinder::find_full_res`]) at the [`unlinked_regions`]: there, the full-resolution corners
-/// replace the unlinked ones (those near a linked corner are left out), and the grids are assembled
-/// again from the lot.
+/// ([`CornerFinder::find_full_res`]) at the [`unlinked_regions`]: the full-resolution corners found
+/// there (those near a linked corner left out) are assembled into grids of their own, added to the
+/// first pass's, which stay as they were (a face the first pass found is never lost to the second).
 pub fn find_and_assemble(
     finder: &mut CornerFinder,
     img: &GrayImage,
 ) -> Result<(Vec<XCorner>, Vec<Grid>), DetectError> {
-    let corners = finder.find(img)?;
-    let grids = assemble(&corners);
+    let mut corners = finder.find(img)?;
+    let mut grids = assemble(&corners);
     let regions = unlinked_regions(&corners, &grids, img.width(), img.height());
     if regions.is_empty() {
         return Ok((corners, grids));
     }
-    let inside = |uv: &Vector2<f64>| {
-        regions.iter().any(|r| {
-            uv.x >= f64::from(r[0]) - 0.5
-                && uv.x < f64::from(r[2]) - 0.5
-                && uv.y >= f64::from(r[1]) - 0.5
-                && uv.y < f64::from(r[3]) - 0.5
-        })
-    };
-    let mut linked = vec![false; corners.len()];
-    for i in grids.iter().flat_map(|g| g.cells.iter().flatten()) {
-        linked[*i] = true;
-    }
-    let kept_linked: Vec<Vector2<f64>> = corners
+    let linked: Vec<Vector2<f64>> = grids
         .iter()
-        .zip(&linked)
-        .filter(|(_, l)| **l)
-        .map(|(c, _)| c.uv)
+        .flat_map(|g| g.cells.iter().flatten())
+        .map(|&i| corners[i].uv)
         .collect();
-    let mut merged: Vec<XCorner> = corners
-        .iter()
-        .zip(&linked)
-        .filter(|(c, l)| **l || !inside(&c.uv))
-        .map(|(c, _)| *c)
-        .collect();
+    let mut second = Vec::new();
     for r in &regions {
-        merged.extend(finder.find_full_res(img, *r)?.into_iter().filter(|c| {
-            inside(&c.uv)
-                && kept_linked
-                    .iter()
-                    .all(|p| (p - c.uv).norm() > SECOND_LOOK_SAME_PX)
+        second.extend(finder.find_full_res(img, *r)?.into_iter().filter(|c| {
+            linked
+                .iter()
+                .all(|p| (p - c.uv).norm() > SECOND_LOOK_SAME_PX)
         }));
     }
-    let grids = assemble(&merged);
-    Ok((merged, grids))
+    let offset = corners.len();
+    for mut g in assemble(&second) {
+        for i in g.cells.iter_mut().flatten() {
+            *i += offset;
+        }
+        grids.push(g);
+    }
+    corners.extend(second);
+    Ok((corners, grids))
 }
 
 /// A full-resolution corner this close (px) to a linked corner is that corner again.
