@@ -73,8 +73,6 @@ pub struct CornerFinder {
     smooth: Vec<f32>,
     /// Its saddle response.
     resp: Vec<f32>,
-    /// The rectangle of a second look, enlarged 2× (see [`CornerFinder::find_full_res`]).
-    zoomed: Vec<u8>,
 }
 
 impl CornerFinder {
@@ -109,51 +107,6 @@ impl CornerFinder {
         out.dedup_by(|a, b| a == b);
         out.truncate(MAX_CANDIDATES);
         Ok(out)
-    }
-
-    /// X-corners of the rectangle `[x0, x1) × [y0, y1)` of `img` found at full resolution, with their
-    /// positions in the frame: the method of [`CornerFinder::find`] applied to the rectangle
-    /// enlarged 2× by pixel replication, whose 2×2 average is the frame itself, and whose rings
-    /// ([`RING_RADII`]) are half as wide in the frame. A face seen at 75°+ from frontal, or a small one
-    /// at an image corner under strong barrel distortion, has squares 3–5 px across in one direction:
-    /// the half-resolution pass smooths them away, this pass sees them (at about 4× the cost per
-    /// frame pixel, so it is only run where [`super::grid`] asks for it). Responses are scaled to
-    /// the half-resolution pass's unit (a second difference over half-resolution pixels is 4× one
-    /// over full-resolution pixels, the response its square), so that both rank together as seeds.
-    pub fn find_full_res(
-        &mut self,
-        img: &GrayImage,
-        [x0, y0, x1, y1]: [u32; 4],
-    ) -> Result<Vec<XCorner>, DetectError> {
-        let (x1, y1) = (x1.min(img.width()), y1.min(img.height()));
-        let (w, h) = (x1.saturating_sub(x0), y1.saturating_sub(y0));
-        if 2 * w < MIN_SIDE || 2 * h < MIN_SIDE {
-            return Ok(Vec::new());
-        }
-        let mut zoomed = std::mem::take(&mut self.zoomed);
-        zoomed.clear();
-        let src = img.as_raw();
-        let stride = img.width() as usize;
-        for y in y0..y1 {
-            let row = &src[y as usize * stride..][x0 as usize..x1 as usize];
-            let start = zoomed.len();
-            zoomed.extend(row.iter().flat_map(|&v| [v, v]));
-            zoomed.extend_from_within(start..);
-        }
-        let Some(up) = GrayImage::from_raw(2 * w, 2 * h, zoomed) else {
-            return Ok(Vec::new());
-        };
-        let found = self.find(&up);
-        self.zoomed = up.into_raw();
-        let origin = Vector2::new(f64::from(x0), f64::from(y0));
-        Ok(found?
-            .into_iter()
-            .map(|c| XCorner {
-                uv: origin + (c.uv - Vector2::new(0.5, 0.5)) / 2.0,
-                response: 16.0 * c.response,
-                ..c
-            })
-            .collect())
     }
 
     /// The smoothed half-resolution frame into `smooth` and its saddle response into `resp` (zero
@@ -552,58 +505,6 @@ mod tests {
             })
             .count();
         assert_eq!(stray, 0);
-    }
-
-    /// The full-resolution look sees squares the half-resolution pass smooths away, and places the
-    /// corners in the frame's coordinates.
-    #[test]
-    fn the_full_resolution_look_finds_small_squares_in_frame_coordinates() {
-        let origin = Vector2::new(150.3, 120.6);
-        let (size, angle) = (5.0, 0.3_f64);
-        let img = board(300, 240, size, angle, origin);
-        let mut finder = CornerFinder::new().unwrap();
-        let rect = [100, 70, 200, 170];
-        let half = finder.find(&img).unwrap();
-        let full = finder.find_full_res(&img, rect).unwrap();
-        let (mut inside, mut by_half, mut by_full) = (0, 0, 0);
-        for i in -12..=12 {
-            for j in -12..=12 {
-                let p = lattice_point(origin, size, angle, i, j);
-                // Corners well inside the rectangle (its rings must fit).
-                if p.x < 110.0 || p.y < 80.0 || p.x > 190.0 || p.y > 160.0 {
-                    continue;
-                }
-                inside += 1;
-                by_half += usize::from(half.iter().any(|k| (k.uv - p).norm() < 1.0));
-                by_full += usize::from(full.iter().any(|k| (k.uv - p).norm() < 0.5));
-            }
-        }
-        assert!(inside >= 150, "{inside}");
-        assert!(
-            by_half * 4 < inside,
-            "half resolution: {by_half} of {inside}"
-        );
-        assert!(
-            by_full * 10 >= 9 * inside,
-            "full resolution: {by_full} of {inside}"
-        );
-        // Only in the rectangle; an empty or tiny rectangle gives nothing.
-        assert!(
-            full.iter()
-                .all(|k| k.uv.x > 99.0 && k.uv.x < 200.0 && k.uv.y > 69.0 && k.uv.y < 170.0)
-        );
-        assert!(
-            finder
-                .find_full_res(&img, [10, 10, 20, 20])
-                .unwrap()
-                .is_empty()
-        );
-        assert!(
-            finder
-                .find_full_res(&img, [290, 10, 400, 100])
-                .unwrap()
-                .is_empty()
-        );
     }
 
     /// Neighbours along a row or column have opposite polarity: their dark-quadrant bisectors are

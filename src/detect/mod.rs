@@ -111,7 +111,8 @@ pub fn detect(
     img: &GrayImage,
     rig: &crate::rig::Rig,
 ) -> Result<FrameDetection, DetectError> {
-    let (corners, grids) = grid::find_and_assemble(finder, img)?;
+    let corners = finder.find(img)?;
+    let grids = grid::assemble(&corners);
     let max_lines = rig
         .faces
         .iter()
