@@ -25,11 +25,23 @@ use super::XCorner;
 use super::grid::Grid;
 use super::refine::{self, Refined};
 
-/// A fitted corner.
+/// A fitted corner, or (σ infinite) a lattice position too close to the image border for any corner
+/// window: see [`Fitted::is_measured`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Fitted {
     pub uv: Vector2<f64>,
     pub sigma_px: f64,
+}
+
+impl Fitted {
+    /// Whether the position was measured by a corner fit. A grid's lattice position that lies inside
+    /// the image but so near its border that not even the smallest corner window fits
+    /// ([`refine::MIN_BORDER_HALF_PX`]) is kept at its predicted position with an infinite σ: it
+    /// completes the grid's extent — a face is identified by where its pattern ends, not by having
+    /// every corner fitted — but it is no observation and never becomes a labelled corner.
+    pub fn is_measured(&self) -> bool {
+        self.sigma_px.is_finite()
+    }
 }
 
 /// A completed grid: `rows × cols`, row-major, with the corners that could be fitted.
@@ -387,6 +399,32 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
     let Some((r0, r1, c0, c1)) = bounds(&cells) else {
         return Completed::empty(dropped, recovered);
     };
+    // Positions of the lattice that no window can fit at, held for the grid's extent.
+    let mut at_border = Vec::new();
+    for r in r0..=r1 {
+        for c in c0..=c1 {
+            if cells.contains_key(&(r, c)) {
+                continue;
+            }
+            if let (Some(p), Some(a), Some(b)) = (
+                predict(&cells, r, c),
+                step_along(&cells, r, c, 0, 1),
+                step_along(&cells, r, c, 1, 0),
+            ) && beyond_any_window(img, p, a, b)
+            {
+                at_border.push(((r, c), p));
+            }
+        }
+    }
+    for (key, uv) in at_border {
+        cells.insert(
+            key,
+            Fitted {
+                uv,
+                sigma_px: f64::INFINITY,
+            },
+        );
+    }
     let rows = (r1 - r0 + 1) as usize;
     let cols = (c1 - c0 + 1) as usize;
     let mut out = vec![None; rows * cols];
@@ -400,6 +438,26 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
         dropped,
         recovered,
     }
+}
+
+/// Whether `p` lies inside the image but too close to its border for any corner window: the window
+/// of [`refine::refine_near_border`] (half-extents [`refine::WINDOW`] of the lattice steps `a`, `b`)
+/// shrunk about `p` until it fits would be smaller than [`refine::MIN_BORDER_HALF_PX`] along a step.
+fn beyond_any_window(img: &GrayImage, p: Vector2<f64>, a: Vector2<f64>, b: Vector2<f64>) -> bool {
+    let (w, h) = (f64::from(img.width()) - 0.5, f64::from(img.height()) - 0.5);
+    if !(p.x >= -0.5 && p.x < w && p.y >= -0.5 && p.y < h) {
+        return false;
+    }
+    let (la, lb) = (a.norm(), b.norm());
+    if !(la > 1e-6 && lb > 1e-6) {
+        return false;
+    }
+    let half = |l: f64| (refine::WINDOW * l).clamp(refine::MIN_HALF_PX, refine::MAX_HALF_PX);
+    let (ha, hb) = (half(la), half(lb));
+    let ext_x = a.x.abs() / la * ha + b.x.abs() / lb * hb;
+    let ext_y = a.y.abs() / la * ha + b.y.abs() / lb * hb;
+    let room = ((p.x + 0.5).min(w - p.x) / ext_x).min((p.y + 0.5).min(h - p.y) / ext_y);
+    room < 1.0 && room * ha.min(hb) < refine::MIN_BORDER_HALF_PX
 }
 
 /// The median of `v` (the upper one for an even count), `None` if empty.
@@ -458,6 +516,22 @@ mod tests {
         // All cells at one point: no scale, no prediction.
         let same = vec![Vector2::new(5.0, 5.0); 6];
         assert_eq!(image_of_origin(&plane[..6], &same), None);
+    }
+
+    #[test]
+    fn positions_beyond_any_window_lie_inside_the_frame_within_a_few_px_of_its_border() {
+        let img = GrayImage::new(200, 100);
+        // Square steps of 20 px: the window's half-extent is 13 px, shrinkable to 3 px.
+        let (a, b) = (Vector2::new(20.0, 0.0), Vector2::new(0.0, 20.0));
+        let at = |x: f64, y: f64| beyond_any_window(&img, Vector2::new(x, y), a, b);
+        assert!(at(1.0, 50.0) && at(198.8, 50.0) && at(100.0, 1.9) && at(100.0, 97.6));
+        assert!(!at(2.6, 50.0) && !at(100.0, 50.0) && !at(196.4, 50.0) && !at(100.0, 2.6));
+        // Outside the frame: not held (a corner there is not visible).
+        assert!(!at(-0.6, 50.0) && !at(199.6, 50.0) && !at(100.0, -1.0));
+        // Diagonal steps: the window's corners reach farther along x.
+        let (a, b) = (Vector2::new(14.0, 14.0), Vector2::new(-14.0, 14.0));
+        assert!(beyond_any_window(&img, Vector2::new(3.5, 50.0), a, b));
+        assert!(!beyond_any_window(&img, Vector2::new(5.0, 50.0), a, b));
     }
 
     #[test]

@@ -75,7 +75,8 @@ impl Partial {
         let corners = (0..g.rows)
             .flat_map(|r| (0..g.cols).map(move |c| (r, c)))
             .filter_map(|(r, c)| {
-                g.get(r, c).map(|f| GridCorner {
+                // Positions held for the extent only (no window fits there) are no observations.
+                g.get(r, c).filter(|f| f.is_measured()).map(|f| GridCorner {
                     r,
                     c,
                     uv: f.uv,
