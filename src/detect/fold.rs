@@ -2,36 +2,46 @@
 //! cube's edge, boards meeting at a seam — is cut into per-plane grids before anything is decided
 //! about them.
 //!
-//! On a plane, a lattice is the image of a square grid under a homography (up to the lens's
-//! distortion, small over a few squares), so the homography fitted to a few lines of corners
-//! predicts the next line. Across a fold it does not: the next line lies on another plane. For each
-//! inner line `k` of a grid (each direction), a homography is fitted to the [`WINDOW`] lines ending
-//! at `k` and predicts line `k + 1`, and one fitted to the lines starting at `k` predicts line
-//! `k − 1`. Only at a fold do both predictions miss — the fold line itself lies on both planes, so
-//! on either side of it one of the two windows stays on one plane — and line `k` is a fold when the
-//! smaller mean miss of the two exceeds [`FOLD_STEPS`] of the grid's step and [`FOLD_CONTRAST`]
-//! times the median over the grid's other lines (strong lens distortion bends every line a little). The grid is cut there: the lines
-//! before and after it become two grids, each with its side at the fold marked (a face printed up to
-//! the fold ends there; there is no margin to prove it), and the corners on the fold line belong to
-//! no face. The strongest fold is cut first and each part is examined again.
+//! Along a line of corners on one plane, perspective and lens distortion bend the spacing and the
+//! direction smoothly, so the quadratic through three consecutive corners of a row predicts the
+//! next one (`3·p₀ − 3·p₁ + p₂`). Across a fold it does not: the next corner lies on another plane
+//! and the row kinks. For each inner line `k` of a grid (each direction), every row's corners at
+//! `k, k − 1, k − 2` predict its corner at `k + 1`, and those at `k, k + 1, k + 2` its corner at
+//! `k − 1`. Only at a fold do both predictions miss — the fold line itself lies on both planes, so on
+//! either side of it one of the two windows stays on one plane — and line `k` is a fold when the
+//! smaller mean miss of the two exceeds [`FOLD_STEPS`] of the grid's step and [`FOLD_CONTRAST`] times
+//! the median over the grid's other lines. The grid is cut there: the lines before and after it
+//! become two grids, each with its side at the fold marked (a face printed up to the fold ends there;
+//! there is no margin to prove it), and the corners on the fold line belong to no face. The strongest
+//! fold is cut first and each part is examined again.
 //!
-//! Measured with `cargo run --release --example detect_cases -- 6` (wrapped cube: one sheet of 30 mm
-//! squares around a box edge, k1 −0.3): true folds score 0.26–0.58 of a step against a median of
-//! 0.01–0.03 on the same grid; 8 of the 12 faces are found, none mislabelled. On the realistic and
-//! hard cube sets no grid is cut (the figures of `detect_eval` are unchanged). Not seen yet: a fold
-//! with only one line of corners beyond it (the windows need [`WINDOW`] lines on each side), and two
-//! grids assembled separately on either side of a fold (the side at the fold then fails its extent
-//! check). On the real inside corner of `bailus_tsai_cube_stereo` (k1 ≈ −0.24 over a 3000 px frame)
-//! the fold scores 0.28 against a median of 0.11 and is not cut.
+//! The predictor was a homography fitted to the three lines; it follows perspective exactly but not
+//! lens curvature, which bends every line of a strongly distorted grid. Measured (miss in steps, fold
+//! vs the grid's median): wrapped cube renders (k1 −0.3, `cargo run --release --example detect_cases
+//! -- 6`), homography 0.26–0.36 vs 0.02–0.03 (13–16×), quadratic 0.20–0.25 vs 0.005–0.008 (26–48×);
+//! the real inside corner of `bailus_tsai_cube_stereo` (k1 ≈ −0.24 Tsai over a 3000 px frame),
+//! homography 0.28 vs 0.11 (2.5×, not cut), quadratic 0.19–0.21 vs 0.006–0.008 (24–32×); lines of
+//! unfolded grids (inside-corner renders, the photos' per-wall grids) at most 0.026 with the
+//! quadratic; the shallowest fold seen, 0.086 against 0.0024 (a replica of the photos seen almost
+//! symmetrically, `photo-corner` frame 4), sets [`FOLD_STEPS`] at 0.05. With the quadratic, 8 of
+//! the 12 wrapped-cube faces are found as before, none mislabelled; every case of `detect_cases`
+//! keeps its figures.
+//!
+//! The assembly may also stop at a fold and build the plane beyond it as a second grid (in the right
+//! photo the fold line and one line beyond it are in one grid, the rest of the wall in another):
+//! [`join`] first joins two grids when the positions one step beyond a side of one (the same
+//! quadratic extrapolation) are the corners of a side line of the other, [`MIN_JOINED`] or more of
+//! them, all on one lattice line and each within [`JOIN_STEPS`] of a step; where the two overlap
+//! they must have found the same corners.
 
 use nalgebra::Vector2;
 
 use super::complete::{Completed, Fitted, median};
 
-/// Lines on each side of a candidate fold used to fit the homography (the fold line included).
+/// Lines on each side of a candidate fold used for the prediction (the fold line included).
 pub const WINDOW: usize = 3;
 /// Mean prediction miss (fraction of the grid's step) beyond which a line is a fold.
-pub const FOLD_STEPS: f64 = 0.1;
+pub const FOLD_STEPS: f64 = 0.05;
 /// A fold's miss must also be this many times the median miss of the grid's other lines: lens
 /// distortion bends every line a little, a fold one line a lot.
 pub const FOLD_CONTRAST: f64 = 5.0;

@@ -709,8 +709,11 @@ impl RawRig {
         for a in 0..faces.len() {
             for b in a + 1..faces.len() {
                 let (fa, fb) = (&faces[a], &faces[b]);
-                if (fa.cols, fa.rows) == (fb.cols, fb.rows)
-                    || (fa.cols, fa.rows) == (fb.rows, fb.cols)
+                // A face with open sides is never told apart by its size.
+                let sized = fa.open_sides.is_empty() && fb.open_sides.is_empty();
+                if sized
+                    && ((fa.cols, fa.rows) == (fb.cols, fb.rows)
+                        || (fa.cols, fa.rows) == (fb.rows, fb.cols))
                 {
                     warnings.push(RigWarning::SameGridSize {
                         a: fa.name.clone(),
