@@ -433,3 +433,69 @@ pub fn join(grids: &[Completed]) -> Vec<Completed> {
         return out;
     }
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    /// A lattice of `rows` rows and columns `cols` of a sheet folded along column 5: the rows run
+    /// along (30, 0) px per column up to the fold and along (20, 8) beyond it, bent a little by a
+    /// quadratic "lens" term that every line shares.
+    fn sheet(rows: usize, cols: std::ops::Range<usize>) -> Completed {
+        let at = |r: usize, c: usize| {
+            let (r, c) = (r as f64, c as f64);
+            let base = if c <= 5.0 {
+                Vector2::new(100.0 + 30.0 * c, 100.0 + 30.0 * r)
+            } else {
+                Vector2::new(250.0 + 20.0 * (c - 5.0), 100.0 + 30.0 * r + 8.0 * (c - 5.0))
+            };
+            base + Vector2::new(0.0, 0.002 * (base.x - 300.0).powi(2))
+        };
+        let n = cols.len();
+        let cells = (0..rows)
+            .flat_map(|r| cols.clone().map(move |c| (r, c)))
+            .map(|(r, c)| {
+                Some(Fitted {
+                    uv: at(r, c),
+                    sigma_px: 0.05,
+                })
+            })
+            .collect();
+        Completed {
+            rows,
+            cols: n,
+            cells,
+            dropped: 0,
+            recovered: 0,
+        }
+    }
+
+    #[test]
+    fn a_fold_under_curvature_is_cut_and_its_sides_marked() {
+        let pieces = split(&sheet(6, 0..12));
+        let mut sizes: Vec<(usize, usize, FoldSides)> = pieces
+            .iter()
+            .map(|p| (p.grid.rows, p.grid.cols, p.folds))
+            .collect();
+        sizes.sort_by_key(|s| s.1);
+        assert_eq!(sizes.len(), 2, "{sizes:?}");
+        // Columns 0..5 and 6..12; the fold column 5 belongs to neither.
+        assert_eq!((sizes[0].0, sizes[0].1), (6, 5));
+        assert_eq!((sizes[1].0, sizes[1].1), (6, 6));
+        assert!(pieces.iter().all(|p| p.folds.first_col != p.folds.last_col));
+        // The same curvature without a fold is not cut.
+        assert_eq!(split(&sheet(6, 0..6)).len(), 1);
+    }
+
+    #[test]
+    fn grids_assembled_on_either_side_of_a_fold_are_joined() {
+        // The fold line and one line beyond it in one grid, the rest of the plane in another.
+        let joined = join(&[sheet(6, 0..7), sheet(6, 7..12)]);
+        assert_eq!(joined.len(), 1);
+        assert_eq!((joined[0].rows, joined[0].cols), (6, 12));
+        assert_eq!(joined[0], sheet(6, 0..12));
+        // Two grids of one plane that do not touch stay apart.
+        assert_eq!(join(&[sheet(6, 0..3), sheet(6, 9..12)]).len(), 2);
+    }
+}
