@@ -103,3 +103,30 @@ fn a_larger_board_of_the_same_squares_is_never_taken_for_the_rig() {
     assert_eq!(s.mislabelled, 0, "{s}");
     assert_eq!(s.found, s.faces, "{s}");
 }
+
+#[test]
+fn a_replica_of_the_photographed_inside_corner_is_labelled_by_its_fold_and_pattern_ends() {
+    // Two walls, the pattern continuous across the fold, k1 −0.25 at a wide angle: wall-z ends inside
+    // the frame, wall-x runs off it (the photos of tests/detect_photo.rs). wall-x is never fully
+    // visible: it must be placed by its fold and pattern ends in every view, nothing mislabelled.
+    let frames = run("photo-corner", 0..3);
+    let all: Vec<&FaceScore> = frames.iter().flatten().collect();
+    for (k, s) in frames.iter().enumerate() {
+        for f in s {
+            assert!(f.found, "photo-corner frame {k}: face {} not found", f.face);
+            assert_eq!(f.mislabelled, 0, "photo-corner frame {k}: face {}", f.face);
+        }
+        assert!(
+            !s[1].fully_visible,
+            "frame {k}: wall-x should run off the frame"
+        );
+    }
+    let errors: Vec<f64> = all.iter().flat_map(|f| f.errors.iter().copied()).collect();
+    let rms = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
+    eprintln!("photo-corner: {} corners, RMS {rms:.4} px", errors.len());
+    assert!(
+        errors.len() > 500 && rms <= 0.1,
+        "{} corners, RMS {rms}",
+        errors.len()
+    );
+}

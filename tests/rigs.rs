@@ -237,6 +237,59 @@ fn bad_values_are_named_by_path() {
 }
 
 #[test]
+fn open_sides_are_read_and_bad_ones_named_by_path() {
+    let (rig, _) = parse(&GOOD.replacen(
+        "rows = 3",
+        "rows = 3\nopen_sides = [\"last_row\", \"first_col\"]",
+        1,
+    ))
+    .unwrap();
+    assert!(rig.faces[0].open_sides.is_empty());
+    assert_eq!(
+        rig.faces[1].open_sides,
+        [
+            cubecal::rig::FaceSide::LastRow,
+            cubecal::rig::FaceSide::FirstCol
+        ]
+    );
+    let e = err(&GOOD.replacen("rows = 3", "rows = 3\nopen_sides = [\"top\"]", 1));
+    assert_eq!(
+        e.to_string(),
+        "rig.toml: faces[1].open_sides[0]: expected one of \"first_row\", \"last_row\", \"first_col\", \"last_col\", got \"top\""
+    );
+    let e = err(&GOOD.replacen(
+        "rows = 3",
+        "rows = 3\nopen_sides = [\"last_col\", \"last_col\"]",
+        1,
+    ));
+    assert!(
+        e.to_string()
+            .starts_with("rig.toml: faces[1].open_sides[1]: expected each side at most once"),
+        "{e}"
+    );
+    let e = err(&GOOD.replacen(
+        "rows = 3",
+        "rows = 3\nopen_sides = [\"first_row\", \"last_row\"]",
+        1,
+    ));
+    assert!(
+        e.to_string().starts_with(
+            "rig.toml: faces[1].open_sides[1]: expected at most one of two opposite sides"
+        ),
+        "{e}"
+    );
+    let e = err(&GOOD.replacen("rows = 3", "rows = 3\nopen_sides = \"last_row\"", 1));
+    assert!(chain(&e).contains("open_sides"), "{}", chain(&e));
+    assert_eq!(e.exit_code(), cubecal::exit::BAD_INPUT);
+    // The shipped photo rig: one wall runs off every view on its side away from the fold.
+    // No "same grid size" warning: a face with open sides is not told apart by its size.
+    let (bailus, warnings) = load("bailus_inside_corner.toml");
+    assert!(warnings.is_empty(), "{warnings:?}");
+    let open: Vec<_> = bailus.faces.iter().map(|f| f.open_sides.clone()).collect();
+    assert_eq!(open, [vec![], vec![cubecal::rig::FaceSide::LastRow]]);
+}
+
+#[test]
 fn non_orthonormal_axes_are_rejected_with_the_face() {
     let e = err(&GOOD.replacen("row_dir = [0, 0, 1]", "row_dir = [0, 0.5, 0.866]", 1));
     assert!(

@@ -2,42 +2,49 @@
 //! cube's edge, boards meeting at a seam — is cut into per-plane grids before anything is decided
 //! about them.
 //!
-//! On a plane, a lattice is the image of a square grid under a homography (up to the lens's
-//! distortion, small over a few squares), so the homography fitted to a few lines of corners
-//! predicts the next line. Across a fold it does not: the next line lies on another plane. For each
-//! inner line `k` of a grid (each direction), a homography is fitted to the [`WINDOW`] lines ending
-//! at `k` and predicts line `k + 1`, and one fitted to the lines starting at `k` predicts line
-//! `k − 1`. Only at a fold do both predictions miss — the fold line itself lies on both planes, so
-//! on either side of it one of the two windows stays on one plane — and line `k` is a fold when the
-//! smaller mean miss of the two exceeds [`FOLD_STEPS`] of the grid's step and [`FOLD_CONTRAST`]
-//! times the median over the grid's other lines (strong lens distortion bends every line a little). The grid is cut there: the lines
-//! before and after it become two grids, each with its side at the fold marked (a face printed up to
-//! the fold ends there; there is no margin to prove it), and the corners on the fold line belong to
-//! no face. The strongest fold is cut first and each part is examined again.
+//! Along a line of corners on one plane, perspective and lens distortion bend the spacing and the
+//! direction smoothly, so the quadratic through three consecutive corners of a row predicts the
+//! next one (`3·p₀ − 3·p₁ + p₂`). Across a fold it does not: the next corner lies on another plane
+//! and the row kinks. For each inner line `k` of a grid (each direction), every row's corners at
+//! `k, k − 1, k − 2` predict its corner at `k + 1`, and those at `k, k + 1, k + 2` its corner at
+//! `k − 1`. Only at a fold do both predictions miss — the fold line itself lies on both planes, so on
+//! either side of it one of the two windows stays on one plane — and line `k` is a fold when the
+//! smaller mean miss of the two exceeds [`FOLD_STEPS`] of the grid's step and [`FOLD_CONTRAST`] times
+//! the median over the grid's other lines. The grid is cut there: the lines before and after it
+//! become two grids, each with its side at the fold marked (a face printed up to the fold ends there;
+//! there is no margin to prove it), and the corners on the fold line belong to no face. The strongest
+//! fold is cut first and each part is examined again.
 //!
-//! Measured with `cargo run --release --example detect_cases -- 6` (wrapped cube: one sheet of 30 mm
-//! squares around a box edge, k1 −0.3): true folds score 0.26–0.58 of a step against a median of
-//! 0.01–0.03 on the same grid; 8 of the 12 faces are found, none mislabelled. On the realistic and
-//! hard cube sets no grid is cut (the figures of `detect_eval` are unchanged). Not seen yet: a fold
-//! with only one line of corners beyond it (the windows need [`WINDOW`] lines on each side), and two
-//! grids assembled separately on either side of a fold (the side at the fold then fails its extent
-//! check). On the real inside corner of `bailus_tsai_cube_stereo` (k1 ≈ −0.24 over a 3000 px frame)
-//! the fold scores 0.28 against a median of 0.11 and is not cut.
+//! The predictor was a homography fitted to the three lines; it follows perspective exactly but not
+//! lens curvature, which bends every line of a strongly distorted grid. Measured (miss in steps, fold
+//! vs the grid's median): wrapped cube renders (k1 −0.3, `cargo run --release --example detect_cases
+//! -- 6`), homography 0.26–0.36 vs 0.02–0.03 (13–16×), quadratic 0.20–0.25 vs 0.005–0.008 (26–48×);
+//! the real inside corner of `bailus_tsai_cube_stereo` (k1 ≈ −0.24 Tsai over a 3000 px frame),
+//! homography 0.28 vs 0.11 (2.5×, not cut), quadratic 0.19–0.21 vs 0.006–0.008 (24–32×); lines of
+//! unfolded grids (inside-corner renders, the photos' per-wall grids) at most 0.026 with the
+//! quadratic; the shallowest fold seen, 0.086 against 0.0024 (a replica of the photos seen almost
+//! symmetrically, `photo-corner` frame 4), sets [`FOLD_STEPS`] at 0.05. With the quadratic, 8 of
+//! the 12 wrapped-cube faces are found as before, none mislabelled; every case of `detect_cases`
+//! keeps its figures.
+//!
+//! The assembly may also stop at a fold and build the plane beyond it as a second grid (in the right
+//! photo the fold line and one line beyond it are in one grid, the rest of the wall in another):
+//! [`join`] first joins two grids when the positions one step beyond a side of one (the same
+//! quadratic extrapolation) are the corners of a side line of the other, [`MIN_JOINED`] or more of
+//! them, all on one lattice line and each within [`JOIN_STEPS`] of a step; where the two overlap
+//! they must have found the same corners.
 
 use nalgebra::Vector2;
 
-use super::complete::{Completed, median};
-use crate::calib::linear::homography;
+use super::complete::{Completed, Fitted, median};
 
-/// Lines on each side of a candidate fold used to fit the homography (the fold line included).
+/// Lines on each side of a candidate fold used for the prediction (the fold line included).
 pub const WINDOW: usize = 3;
 /// Mean prediction miss (fraction of the grid's step) beyond which a line is a fold.
-pub const FOLD_STEPS: f64 = 0.2;
+pub const FOLD_STEPS: f64 = 0.05;
 /// A fold's miss must also be this many times the median miss of the grid's other lines: lens
 /// distortion bends every line a little, a fold one line a lot.
-pub const FOLD_CONTRAST: f64 = 3.0;
-/// Fewest corners a window needs for its homography.
-const MIN_WINDOW_CORNERS: usize = 6;
+pub const FOLD_CONTRAST: f64 = 5.0;
 
 /// The sides of a grid (in its own row/column indices) that end at a fold.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -118,29 +125,19 @@ fn step(g: &Completed) -> Option<f64> {
     median(&mut d)
 }
 
-/// Mean miss (px) of column `target` predicted by the homography of columns `window`.
-fn miss(g: &Completed, window: std::ops::RangeInclusive<usize>, target: usize) -> Option<f64> {
-    let (mut plane, mut image) = (Vec::new(), Vec::new());
-    for r in 0..g.rows {
-        for c in window.clone() {
-            if let Some(p) = g.get(r, c) {
-                plane.push(Vector2::new(c as f64, r as f64));
-                image.push(p.uv);
-            }
-        }
-    }
-    if plane.len() < MIN_WINDOW_CORNERS {
-        return None;
-    }
-    let h = homography(&plane, &image).ok()?;
+/// Mean miss (px) of column `target` extrapolated along each row from the three columns `from`
+/// (nearest to `target` first): quadratic, so it follows a row's perspective and lens curvature.
+fn miss_along_rows(g: &Completed, from: [usize; 3], target: usize) -> Option<f64> {
     let (mut sum, mut n) = (0.0, 0usize);
     for r in 0..g.rows {
-        if let Some(p) = g.get(r, target) {
-            let x = h * nalgebra::Vector3::new(target as f64, r as f64, 1.0);
-            if x.z.abs() < 1e-12 {
-                return None;
-            }
-            sum += (Vector2::new(x.x / x.z, x.y / x.z) - p.uv).norm();
+        if let (Some(p0), Some(p1), Some(p2), Some(t)) = (
+            g.get(r, from[0]),
+            g.get(r, from[1]),
+            g.get(r, from[2]),
+            g.get(r, target),
+        ) {
+            let pred = 3.0 * p0.uv - 3.0 * p1.uv + p2.uv;
+            sum += (pred - t.uv).norm();
             n += 1;
         }
     }
@@ -153,8 +150,8 @@ fn fold_column(g: &Completed) -> Option<(usize, f64)> {
     let mut scores = Vec::new();
     for k in WINDOW - 1..g.cols.saturating_sub(WINDOW - 1) {
         let (Some(a), Some(b)) = (
-            miss(g, k + 1 - WINDOW..=k, k + 1),
-            miss(g, k..=k + WINDOW - 1, k - 1),
+            miss_along_rows(g, [k, k - 1, k - 2], k + 1),
+            miss_along_rows(g, [k, k + 1, k + 2], k - 1),
         ) else {
             continue;
         };
@@ -165,7 +162,14 @@ fn fold_column(g: &Completed) -> Option<(usize, f64)> {
     let &(k, best) = scores.iter().max_by(|a, b| a.1.total_cmp(&b.1))?;
     let mut others: Vec<f64> = scores.iter().filter(|s| s.0 != k).map(|s| s.1).collect();
     let typical = median(&mut others).unwrap_or(0.0);
-    tracing::debug!(k, best, typical, "strongest bend");
+    tracing::debug!(
+        k,
+        best,
+        typical,
+        rows = g.rows,
+        cols = g.cols,
+        "strongest bend"
+    );
     (best > FOLD_STEPS && best > FOLD_CONTRAST * typical).then_some((k, best))
 }
 
@@ -227,4 +231,271 @@ pub fn split(g: &Completed) -> Vec<Piece> {
         out.push(p);
     }
     out
+}
+
+/// Largest distance (fraction of the local step) between the position one step beyond a grid's
+/// side and a corner of another grid for the two to count as one lattice.
+pub const JOIN_STEPS: f64 = 0.15;
+/// Fewest corners beyond a grid's side that must coincide with another grid's corners to join them.
+pub const MIN_JOINED: usize = 3;
+
+/// `g` with its cell `(r, c)` taken from `source(r, c)` of `g` (a relabelling of rows and columns).
+fn relabelled(
+    g: &Completed,
+    rows: usize,
+    cols: usize,
+    source: impl Fn(usize, usize) -> (usize, usize),
+) -> Completed {
+    let mut cells = Vec::with_capacity(rows * cols);
+    for r in 0..rows {
+        for c in 0..cols {
+            let (r0, c0) = source(r, c);
+            cells.push(g.get(r0, c0));
+        }
+    }
+    Completed {
+        rows,
+        cols,
+        cells,
+        dropped: g.dropped,
+        recovered: g.recovered,
+    }
+}
+
+/// The four relabellings of `g` that bring each of its sides to the last column.
+fn sides_last(g: &Completed) -> [Completed; 4] {
+    let t = transposed(g);
+    let flip = |g: &Completed| relabelled(g, g.rows, g.cols, |r, c| (r, g.cols - 1 - c));
+    let (ft, fg) = (flip(&t), flip(g));
+    [g.clone(), fg, t, ft]
+}
+
+/// Index and position of the corner of `a` nearest to `p`.
+fn nearest(a: &Completed, p: Vector2<f64>) -> Option<((i64, i64), Vector2<f64>)> {
+    (0..a.rows)
+        .flat_map(|r| (0..a.cols).map(move |c| (r, c)))
+        .filter_map(|(r, c)| a.get(r, c).map(|f| ((r as i64, c as i64), f.uv)))
+        .min_by(|x, y| (x.1 - p).norm().total_cmp(&(y.1 - p).norm()))
+}
+
+/// Grid `b` joined to grid `a` when the positions one step beyond one of `b`'s sides (extrapolated
+/// along its rows, as in the fold test) are corners of `a` along one lattice line: a lattice that the
+/// assembly split into two grids at a fold (the fold line in one grid, the rest of the plane beyond
+/// it in the other). `None` when they are not one lattice, or when joining would put two corners in
+/// one cell.
+fn joined(a: &Completed, b: &Completed) -> Option<Completed> {
+    'sides: for bv in sides_last(b) {
+        if bv.cols < WINDOW {
+            continue;
+        }
+        let k = bv.cols - 1;
+        let mut matches: Vec<(usize, (i64, i64))> = Vec::new();
+        let mut misses = 0usize;
+        for r in 0..bv.rows {
+            let (Some(p0), Some(p1), Some(p2)) = (bv.get(r, k), bv.get(r, k - 1), bv.get(r, k - 2))
+            else {
+                continue;
+            };
+            let pred = 3.0 * p0.uv - 3.0 * p1.uv + p2.uv;
+            let step = (p0.uv - p1.uv).norm();
+            match nearest(a, pred) {
+                Some((idx, uv)) if (uv - pred).norm() <= JOIN_STEPS * step => {
+                    matches.push((r, idx))
+                }
+                other => {
+                    tracing::trace!(?pred, step, ?other, "no corner of the other grid beyond");
+                    misses += 1
+                }
+            }
+        }
+        tracing::trace!(a = ?(a.rows, a.cols), b = ?(b.rows, b.cols), matched = matches.len(), misses, first = ?matches.first(), "join side");
+        if matches.len() < MIN_JOINED {
+            continue;
+        }
+        // The matches must lie on one lattice line of `a`, one index per row of `b`.
+        let (r0, i0) = matches[0];
+        let (r1, i1) = matches[1];
+        let dr = r1 as i64 - r0 as i64;
+        let d = ((i1.0 - i0.0) / dr, (i1.1 - i0.1) / dr);
+        let unit = matches!(d, (0, 1) | (0, -1) | (1, 0) | (-1, 0));
+        let on_line = |&(r, i): &(usize, (i64, i64))| {
+            let k = r as i64 - r0 as i64;
+            i == (i0.0 + k * d.0, i0.1 + k * d.1)
+        };
+        if !unit || !matches.iter().all(on_line) || misses > matches.len() {
+            tracing::debug!(
+                matched = matches.len(),
+                misses,
+                "grids touch but do not join"
+            );
+            continue;
+        }
+        // The direction in `a` from the matched line toward `b`'s outermost line: where `a` has the
+        // next line, its corner must be `b`'s; where it has none, the line before must lie on the
+        // other side.
+        let p0 = bv.get(r0, k)?.uv;
+        let m = a.get(i0.0 as usize, i0.1 as usize)?.uv;
+        let tol = JOIN_STEPS * (p0 - m).norm();
+        let get = |r: i64, c: i64| {
+            (r >= 0 && c >= 0)
+                .then(|| a.get(r as usize, c as usize))
+                .flatten()
+        };
+        let toward: Vec<(i64, i64)> = [(0i64, 1i64), (0, -1), (1, 0), (-1, 0)]
+            .into_iter()
+            .filter(|e| e.0 * d.0 + e.1 * d.1 == 0)
+            .filter(|e| match get(i0.0 + e.0, i0.1 + e.1) {
+                Some(q) => (q.uv - p0).norm() <= tol,
+                None => {
+                    get(i0.0 - e.0, i0.1 - e.1).is_some_and(|q| (m - q.uv).dot(&(p0 - m)) > 0.0)
+                }
+            })
+            .collect();
+        let [e] = toward[..] else {
+            tracing::debug!(?toward, "grids touch but the side of the join is unclear");
+            continue;
+        };
+        // `b`'s (r, c) goes to `a`'s i0 + (r − r0)·d + (k + 1 − c)·e.
+        let map = |r: usize, c: usize| {
+            let (s, t) = (r as i64 - r0 as i64, (k + 1 - c) as i64);
+            (i0.0 + s * d.0 + t * e.0, i0.1 + s * d.1 + t * e.1)
+        };
+        let mut cells: Vec<((i64, i64), Fitted)> = Vec::new();
+        for r in 0..a.rows {
+            for c in 0..a.cols {
+                if let Some(f) = a.get(r, c) {
+                    cells.push(((r as i64, c as i64), f));
+                }
+            }
+        }
+        for r in 0..bv.rows {
+            for c in 0..bv.cols {
+                if let Some(f) = bv.get(r, c) {
+                    cells.push((map(r, c), f));
+                }
+            }
+        }
+        let (rmin, rmax) = cells
+            .iter()
+            .map(|x| x.0.0)
+            .fold((i64::MAX, i64::MIN), |m, v| (m.0.min(v), m.1.max(v)));
+        let (cmin, cmax) = cells
+            .iter()
+            .map(|x| x.0.1)
+            .fold((i64::MAX, i64::MIN), |m, v| (m.0.min(v), m.1.max(v)));
+        let (rows, cols) = ((rmax - rmin + 1) as usize, (cmax - cmin + 1) as usize);
+        let mut out: Vec<Option<Fitted>> = vec![None; rows * cols];
+        for ((r, c), f) in cells {
+            let slot = &mut out[(r - rmin) as usize * cols + (c - cmin) as usize];
+            match slot {
+                // Where the grids overlap, both must have found the same corner.
+                Some(g) if (g.uv - f.uv).norm() > tol => {
+                    tracing::debug!(?d, ?e, "two grids overlap with different corners");
+                    continue 'sides;
+                }
+                Some(_) => {}
+                None => *slot = Some(f),
+            }
+        }
+        tracing::debug!(
+            matched = matches.len(),
+            rows,
+            cols,
+            "two grids joined across a fold"
+        );
+        return Some(Completed {
+            rows,
+            cols,
+            cells: out,
+            dropped: a.dropped + b.dropped,
+            recovered: a.recovered + b.recovered,
+        });
+    }
+    None
+}
+
+/// The grids of a frame with every pair that is one lattice split at a fold joined (see [`joined`]).
+pub fn join(grids: &[Completed]) -> Vec<Completed> {
+    let mut out: Vec<Completed> = grids.to_vec();
+    'again: loop {
+        for i in 0..out.len() {
+            for j in 0..out.len() {
+                if i == j || out[i].count() == 0 || out[j].count() == 0 {
+                    continue;
+                }
+                if let Some(g) = joined(&out[i], &out[j]) {
+                    out[i] = g;
+                    out.remove(j);
+                    continue 'again;
+                }
+            }
+        }
+        return out;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    /// A lattice of `rows` rows and columns `cols` of a sheet folded along column 5: the rows run
+    /// along (30, 0) px per column up to the fold and along (20, 8) beyond it, bent a little by a
+    /// quadratic "lens" term that every line shares.
+    fn sheet(rows: usize, cols: std::ops::Range<usize>) -> Completed {
+        let at = |r: usize, c: usize| {
+            let (r, c) = (r as f64, c as f64);
+            let base = if c <= 5.0 {
+                Vector2::new(100.0 + 30.0 * c, 100.0 + 30.0 * r)
+            } else {
+                Vector2::new(250.0 + 20.0 * (c - 5.0), 100.0 + 30.0 * r + 8.0 * (c - 5.0))
+            };
+            base + Vector2::new(0.0, 0.002 * (base.x - 300.0).powi(2))
+        };
+        let n = cols.len();
+        let cells = (0..rows)
+            .flat_map(|r| cols.clone().map(move |c| (r, c)))
+            .map(|(r, c)| {
+                Some(Fitted {
+                    uv: at(r, c),
+                    sigma_px: 0.05,
+                })
+            })
+            .collect();
+        Completed {
+            rows,
+            cols: n,
+            cells,
+            dropped: 0,
+            recovered: 0,
+        }
+    }
+
+    #[test]
+    fn a_fold_under_curvature_is_cut_and_its_sides_marked() {
+        let pieces = split(&sheet(6, 0..12));
+        let mut sizes: Vec<(usize, usize, FoldSides)> = pieces
+            .iter()
+            .map(|p| (p.grid.rows, p.grid.cols, p.folds))
+            .collect();
+        sizes.sort_by_key(|s| s.1);
+        assert_eq!(sizes.len(), 2, "{sizes:?}");
+        // Columns 0..5 and 6..12; the fold column 5 belongs to neither.
+        assert_eq!((sizes[0].0, sizes[0].1), (6, 5));
+        assert_eq!((sizes[1].0, sizes[1].1), (6, 6));
+        assert!(pieces.iter().all(|p| p.folds.first_col != p.folds.last_col));
+        // The same curvature without a fold is not cut.
+        assert_eq!(split(&sheet(6, 0..6)).len(), 1);
+    }
+
+    #[test]
+    fn grids_assembled_on_either_side_of_a_fold_are_joined() {
+        // The fold line and one line beyond it in one grid, the rest of the plane in another.
+        let joined = join(&[sheet(6, 0..7), sheet(6, 7..12)]);
+        assert_eq!(joined.len(), 1);
+        assert_eq!((joined[0].rows, joined[0].cols), (6, 12));
+        assert_eq!(joined[0], sheet(6, 0..12));
+        // Two grids of one plane that do not touch stay apart.
+        assert_eq!(join(&[sheet(6, 0..3), sheet(6, 9..12)]).len(), 2);
+    }
 }

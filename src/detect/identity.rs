@@ -195,7 +195,13 @@ pub(super) struct Whole {
 /// The mappings whose face has the grid's size (directly or turned by 90°).
 pub(super) fn by_size(rig: &Rig, d: &Dense) -> Vec<Mapping> {
     let mut out = Vec::new();
-    for (fi, f) in rig.faces.iter().enumerate() {
+    // A face with open sides has no size to match: the board runs on beyond the corners described.
+    for (fi, f) in rig
+        .faces
+        .iter()
+        .enumerate()
+        .filter(|f| f.1.open_sides.is_empty())
+    {
         for turns in 0..4u8 {
             let (r, c) = if turns % 2 == 0 {
                 (d.rows, d.cols)

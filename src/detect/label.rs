@@ -26,7 +26,7 @@ use super::extent::check_extent;
 use super::fold::{self, Piece};
 use super::grid::MIN_LINES;
 use super::identity::{self, Whole};
-use super::place::{Partial, place};
+use super::place::{Partial, place, place_by_edges};
 use crate::rig::Rig;
 
 pub use super::extent::{CONTINUED_CONTRAST, END_UNIFORMITY, MIN_EMPTY_BEYOND};
@@ -102,8 +102,9 @@ pub fn label(
     let mut rejected = Vec::new();
     let mut whole: Vec<Whole> = Vec::new();
     let mut partials = Vec::new();
-    let pieces: Vec<Piece> = grids.iter().flat_map(fold::split).collect();
+    let pieces: Vec<Piece> = fold::join(grids).iter().flat_map(fold::split).collect();
     for Piece { grid: g, folds } in &pieces {
+        let grid_folds = *folds;
         let mut folds = *folds;
         if g.count() == 0 {
             rejected.push(Rejection::frame(
@@ -119,7 +120,7 @@ pub fn label(
                 g.rows,
                 g.cols
             );
-            partials.push(Partial::new(g, reason));
+            partials.push(Partial::new(g, grid_folds, reason));
             continue;
         }
         let mut dense = Dense {
@@ -138,11 +139,11 @@ pub fn label(
                 "{}×{} grid matches no face of rig '{}'",
                 dense.rows, dense.cols, rig.name
             );
-            partials.push(Partial::new(g, reason));
+            partials.push(Partial::new(g, grid_folds, reason));
             continue;
         }
         if let Err(reason) = check_extent(img, &dense, folds) {
-            partials.push(Partial::new(g, reason));
+            partials.push(Partial::new(g, grid_folds, reason));
             continue;
         }
         match identity::by_colours(img, rig, &dense, &by_size) {
@@ -155,9 +156,12 @@ pub fn label(
     }
     let (faces, mut not_identified) = identity::identify(rig, whole);
     rejected.append(&mut not_identified);
-    let (placed, not_placed) = place(img, rig, &faces, partials);
+    let (placed, mut contradicted, not_placed) = place(img, rig, &faces, partials);
     let mut faces = faces;
     faces.extend(placed);
-    rejected.extend(not_placed);
+    rejected.append(&mut contradicted);
+    let (by_edges, mut not_placed) = place_by_edges(img, rig, &faces, not_placed);
+    faces.extend(by_edges);
+    rejected.append(&mut not_placed);
     (faces, rejected)
 }

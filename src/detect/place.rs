@@ -21,8 +21,19 @@
 //!    frame that were not found is not what the grid is (or the frame hides part of it for a reason
 //!    the detector cannot see). Holes inside the grid's range are corners whose fit failed.
 //!
-//! A face placed by two grids is a contradiction: both are dropped. Frames with no complete face
-//! (a single board cut by the border, or a cube with every face cut) are not placed yet.
+//! A face placed by two grids is a contradiction: both are dropped.
+//!
+//! Grids cut at a fold that this cannot place (no complete face in the frame) are placed by their
+//! visible pattern ends
+//! in [`place_by_edges`]: a side at a fold of the lattice goes to a fold side of a face (computed from
+//! the rig: the line one step beyond it is also one step beyond another face's side), a side beyond
+//! which the squares give way to a uniform surface goes to a side of a face that is neither open nor at
+//! a fold, and those ends must fix the grid's offset on both axes; the colours, one camera for all
+//! such grids of the frame (clear winner) and the extent through that camera must agree as above. A
+//! single cut board stays unplaced: one plane cannot confirm it. Measured on the real inside corner
+//! of `bailus_tsai_cube_stereo` (`cargo test --release --test detect_photo -- --nocapture`): both walls
+//! in both photos, DLT RMS 32–33 px against a step of 164–169 px (the lens's barrel distortion; the
+//! only assignment its pattern ends allow); every hand-labelled point matched at its rig position.
 //!
 //! Measured with `PAN_DEG=θ cargo run --release --example detect_eval -- SET 24 DIR` (the set's views
 //! with the camera turned by ±θ, so that the cube is cut by the border): realistic, θ = 30°: 41
@@ -39,11 +50,14 @@ use image::GrayImage;
 use nalgebra::{Vector2, Vector3};
 
 use super::complete::{Completed, median};
+use super::dense::Dense;
+use super::extent::{MIN_EMPTY_BEYOND, Side, look_beyond};
+use super::fold::FoldSides;
 use super::identity::{
     ColourSums, MIN_COLOUR_CONTRAST, dlt_fit, mean_square_intensity, repeated, reprojection_rms,
 };
 use super::label::{self, FaceDetection, LabelledCorner, Rejection};
-use crate::rig::Rig;
+use crate::rig::{FaceSide, Rig};
 
 /// The best placement's geometric RMS must be this many times smaller than any other's.
 pub const PLACEMENT_MARGIN: f64 = 3.0;
@@ -67,11 +81,13 @@ pub(super) struct Partial {
     rows: usize,
     cols: usize,
     corners: Vec<GridCorner>,
+    /// The grid's sides at a fold (in its own indices).
+    folds: FoldSides,
     pub(super) reason: String,
 }
 
 impl Partial {
-    pub(super) fn new(g: &Completed, reason: String) -> Partial {
+    pub(super) fn new(g: &Completed, folds: FoldSides, reason: String) -> Partial {
         let corners = (0..g.rows)
             .flat_map(|r| (0..g.cols).map(move |c| (r, c)))
             .filter_map(|(r, c)| {
@@ -88,11 +104,12 @@ impl Partial {
             rows: g.rows,
             cols: g.cols,
             corners,
+            folds,
             reason,
         }
     }
 
-    fn grid_corners(&self) -> Vec<label::GridCorner> {
+    pub(super) fn grid_corners(&self) -> Vec<label::GridCorner> {
         self.corners
             .iter()
             .map(|g| label::GridCorner {
@@ -140,6 +157,7 @@ impl Partial {
                     ..*p
                 })
                 .collect(),
+            folds: self.folds.transposed(),
             reason: self.reason.clone(),
         }
     }
@@ -196,23 +214,22 @@ impl Placement {
     }
 }
 
-/// Place the partial grids of one frame on the faces not found complete. Returns the placed faces
-/// and the rejections of the grids that could not be placed (each with its original reason).
+/// Place the partial grids of one frame on the faces not found complete. Returns the placed faces,
+/// the rejections of contradicting placements, and the grids that could not be placed with the
+/// reason why (for [`place_by_edges`]).
 pub(super) fn place(
     img: &GrayImage,
     rig: &Rig,
     complete: &[FaceDetection],
     partials: Vec<Partial>,
-) -> (Vec<FaceDetection>, Vec<Rejection>) {
+) -> (Vec<FaceDetection>, Vec<Rejection>, Vec<(Partial, String)>) {
     let mut placed: Vec<FaceDetection> = Vec::new();
     let mut rejected = Vec::new();
+    let mut not_placed = Vec::new();
     for p in partials {
         match place_one(img, rig, complete, &p) {
             Ok(f) => placed.push(f),
-            Err(why) => rejected.push(Rejection {
-                reason: format!("{}; not placed on the rig: {why}", p.reason),
-                corners: p.grid_corners(),
-            }),
+            Err(why) => not_placed.push((p, why)),
         }
     }
     let dup = repeated(placed.iter().map(|f| f.face));
@@ -237,7 +254,7 @@ pub(super) fn place(
         }
         keep
     });
-    (placed, rejected)
+    (placed, rejected, not_placed)
 }
 
 fn place_one(
@@ -412,6 +429,499 @@ fn place_one(
         corners,
         colour_contrast: contrast,
     })
+}
+
+/// What a partial grid shows beyond one of its sides.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum SideEvidence {
+    /// The lattice bends onto another plane there (a fold found by [`super::fold`]).
+    Fold,
+    /// The pattern visibly ends there: one step beyond, the squares give way to a uniform surface.
+    End,
+    /// Nothing proven (the frame border, or squares that may continue).
+    Open,
+}
+
+/// The grid side that a face side `side` of the turned grid comes from, and back: one quarter turn
+/// takes (r, c) to (c, rows − 1 − r) (see [`turn`]).
+fn turned_side(side: FaceSide, turns: u8) -> FaceSide {
+    let mut s = side;
+    for _ in 0..turns {
+        s = match s {
+            FaceSide::FirstRow => FaceSide::LastCol,
+            FaceSide::LastRow => FaceSide::FirstCol,
+            FaceSide::FirstCol => FaceSide::FirstRow,
+            FaceSide::LastCol => FaceSide::LastRow,
+        };
+    }
+    s
+}
+
+/// The face sides that lie on a fold of the rig: the lattice line one step beyond the side is also
+/// the line one step beyond a side of another face, on another plane (the two faces are one pattern
+/// bent along that line, or two boards meeting there).
+pub(super) fn fold_sides(rig: &Rig, fi: usize) -> Vec<FaceSide> {
+    let beyond = |f: &crate::rig::Face, side: FaceSide| -> [Vector3<f64>; 2] {
+        let (r, c) = (f.rows as f64, f.cols as f64);
+        match side {
+            FaceSide::FirstRow => [f.lattice_xyz(-1.0, 0.0), f.lattice_xyz(-1.0, 1.0)],
+            FaceSide::LastRow => [f.lattice_xyz(r, 0.0), f.lattice_xyz(r, 1.0)],
+            FaceSide::FirstCol => [f.lattice_xyz(0.0, -1.0), f.lattice_xyz(1.0, -1.0)],
+            FaceSide::LastCol => [f.lattice_xyz(0.0, c), f.lattice_xyz(1.0, c)],
+        }
+    };
+    let face = &rig.faces[fi];
+    let tol = 1e-3 * face.square_mm;
+    FaceSide::ALL
+        .into_iter()
+        .filter(|&side| {
+            let [a0, a1] = beyond(face, side);
+            rig.faces.iter().enumerate().any(|(gi, g)| {
+                gi != fi
+                    && face.normal().dot(&g.normal()).abs() < 0.99
+                    && FaceSide::ALL.into_iter().any(|gs| {
+                        let [b0, b1] = beyond(g, gs);
+                        let dir = (b1 - b0).normalize();
+                        let off = |p: Vector3<f64>| {
+                            let d = p - b0;
+                            (d - dir * d.dot(&dir)).norm()
+                        };
+                        off(a0) < tol && off(a1) < tol
+                    })
+            })
+        })
+        .collect()
+}
+
+impl Partial {
+    /// The grid's corners at `(r, c)` if found.
+    fn at(&self, idx: &[Option<usize>], r: usize, c: usize) -> Option<Vector2<f64>> {
+        idx[r * self.cols + c].map(|k| self.corners[k].uv)
+    }
+
+    /// What the image shows one step beyond `side` (the grid's own indices): the longest run of the
+    /// outermost line's corners with two corners inward is examined as [`super::extent`] examines a
+    /// whole grid's side.
+    fn evidence(&self, img: &GrayImage, side: FaceSide) -> SideEvidence {
+        let folded = match side {
+            FaceSide::FirstRow => self.folds.first_row,
+            FaceSide::LastRow => self.folds.last_row,
+            FaceSide::FirstCol => self.folds.first_col,
+            FaceSide::LastCol => self.folds.last_col,
+        };
+        if folded {
+            return SideEvidence::Fold;
+        }
+        let idx = self.index();
+        let (len, depth) = match side {
+            FaceSide::FirstRow | FaceSide::LastRow => (self.cols, self.rows),
+            FaceSide::FirstCol | FaceSide::LastCol => (self.rows, self.cols),
+        };
+        if depth < 3 {
+            return SideEvidence::Open;
+        }
+        let point = |k: usize, i: usize| match side {
+            FaceSide::FirstRow => self.at(&idx, k, i),
+            FaceSide::LastRow => self.at(&idx, self.rows - 1 - k, i),
+            FaceSide::FirstCol => self.at(&idx, i, k),
+            FaceSide::LastCol => self.at(&idx, i, self.cols - 1 - k),
+        };
+        // The longest run of positions along the side with three corners inward.
+        let (mut best, mut run) = ((0, 0), (0, 0));
+        for i in 0..len {
+            if (0..3).all(|k| point(k, i).is_some()) {
+                run = if run.1 == 0 {
+                    (i, 1)
+                } else {
+                    (run.0, run.1 + 1)
+                };
+                if run.1 > best.1 {
+                    best = run;
+                }
+            } else {
+                run = (0, 0);
+            }
+        }
+        if best.1 < MIN_EMPTY_BEYOND {
+            return SideEvidence::Open;
+        }
+        let mut uv = Vec::with_capacity(3 * best.1);
+        for k in 0..3 {
+            uv.extend((best.0..best.0 + best.1).filter_map(|i| point(k, i)));
+        }
+        let lines = Dense {
+            rows: 3,
+            cols: best.1,
+            sigma: vec![0.0; uv.len()],
+            uv,
+        };
+        let b = look_beyond(img, &lines, Side::FirstRow);
+        let inside = b.n - b.outside;
+        let end = b.corners.is_empty()
+            && b.undecided == 0
+            && b.empty >= MIN_EMPTY_BEYOND
+            && 2 * b.empty >= inside;
+        tracing::debug!(
+            ?side,
+            n = b.n,
+            outside = b.outside,
+            clipped = b.clipped,
+            empty = b.empty,
+            undecided = b.undecided,
+            corners = b.corners.len(),
+            end,
+            "beyond a partial grid's side"
+        );
+        if end {
+            SideEvidence::End
+        } else {
+            SideEvidence::Open
+        }
+    }
+
+    /// The squares between four found corners, by their first corner's grid index, with their mean
+    /// intensity.
+    fn squares(&self, img: &GrayImage) -> Vec<(usize, usize, f64)> {
+        let idx = self.index();
+        let mut squares = Vec::new();
+        for r in 0..self.rows.saturating_sub(1) {
+            for c in 0..self.cols.saturating_sub(1) {
+                if let (Some(a), Some(b), Some(d), Some(e)) = (
+                    self.at(&idx, r, c),
+                    self.at(&idx, r, c + 1),
+                    self.at(&idx, r + 1, c),
+                    self.at(&idx, r + 1, c + 1),
+                ) && let Some(v) = mean_square_intensity(img, [a, b, d, e])
+                {
+                    squares.push((r, c, v));
+                }
+            }
+        }
+        squares
+    }
+}
+
+/// White-minus-black contrast of the squares of `p` as placed by `pl` (`None` unless both colours
+/// are seen).
+fn placed_contrast(
+    rig: &Rig,
+    p: &Partial,
+    squares: &[(usize, usize, f64)],
+    pl: &Placement,
+) -> Option<f64> {
+    let face = &rig.faces[pl.face];
+    let mut sums = ColourSums::default();
+    for &(r, c, v) in squares {
+        let (r0, c0) = [(r, c), (r, c + 1), (r + 1, c), (r + 1, c + 1)]
+            .iter()
+            .map(|&(a, b)| pl.map(p, a, b))
+            .fold((usize::MAX, usize::MAX), |m, x| {
+                (m.0.min(x.0), m.1.min(x.1))
+            });
+        sums.add(face.square_colour(r0 + 1, c0 + 1), v);
+    }
+    sums.contrast()
+}
+
+/// The placements of `p` (handedness-corrected) whose offset its visible pattern ends fix: each of
+/// its sides at a fold goes to a fold side of the face, each side where the pattern visibly ends to a
+/// side of the face that is neither open nor at a fold, and on each axis at least one side fixes
+/// where the grid lies on the face. Each must show the face's square colours.
+fn edge_placements(
+    img: &GrayImage,
+    rig: &Rig,
+    taken: &[usize],
+    p: &Partial,
+) -> Result<Vec<(Placement, f64)>, String> {
+    let evidence: Vec<(FaceSide, SideEvidence)> = FaceSide::ALL
+        .into_iter()
+        .map(|s| (s, p.evidence(img, s)))
+        .collect();
+    // Only a grid cut from a folded lattice: the fold ties it to the plane beyond (fuzzing found a
+    // board cut by the border beside a grazing face placed by their margins alone, which no truth
+    // confirms).
+    if !evidence.iter().any(|e| e.1 == SideEvidence::Fold) {
+        return Err(
+            "no side at a fold (only grids cut at a fold are placed by their pattern ends)".into(),
+        );
+    }
+    let squares = p.squares(img);
+    let mut out = Vec::new();
+    for (fi, face) in rig.faces.iter().enumerate() {
+        if taken.contains(&fi) {
+            continue;
+        }
+        let folds = fold_sides(rig, fi);
+        'turns: for turns in 0..4u8 {
+            let (tr, tc) = turned_size(p.rows, p.cols, turns);
+            if tr > face.rows || tc > face.cols {
+                continue;
+            }
+            let (mut off_r, mut off_c): (Option<usize>, Option<usize>) = (None, None);
+            for &(side, ev) in &evidence {
+                if ev == SideEvidence::Open {
+                    continue;
+                }
+                let fs = turned_side(side, turns);
+                let fits = match ev {
+                    SideEvidence::Fold => folds.contains(&fs),
+                    _ => !folds.contains(&fs) && !face.is_open(fs),
+                };
+                if !fits {
+                    continue 'turns;
+                }
+                let (slot, value) = match fs {
+                    FaceSide::FirstRow => (&mut off_r, 0),
+                    FaceSide::LastRow => (&mut off_r, face.rows - tr),
+                    FaceSide::FirstCol => (&mut off_c, 0),
+                    FaceSide::LastCol => (&mut off_c, face.cols - tc),
+                };
+                if slot.is_some_and(|v| v != value) {
+                    continue 'turns;
+                }
+                *slot = Some(value);
+            }
+            let (Some(dr), Some(dc)) = (off_r, off_c) else {
+                continue;
+            };
+            let pl = Placement {
+                face: fi,
+                turns,
+                offset: (dr, dc),
+            };
+            if let Some(contrast) = placed_contrast(rig, p, &squares, &pl)
+                && contrast >= MIN_COLOUR_CONTRAST
+            {
+                out.push((pl, contrast));
+            }
+        }
+    }
+    if out.is_empty() {
+        let shown: Vec<String> = evidence
+            .iter()
+            .filter(|e| e.1 != SideEvidence::Open)
+            .map(|e| format!("{} {:?}", e.0.as_str(), e.1).to_lowercase())
+            .collect();
+        return Err(format!(
+            "no face of the rig has its pattern ends where the grid's are ({}) with its square colours",
+            shown.join(", ")
+        ));
+    }
+    Ok(out)
+}
+
+/// A partial grid (handedness-corrected), why [`place`] did not place it, and its placements by
+/// its pattern ends with their colour contrast.
+type EdgePlaced = (Partial, String, Vec<(Placement, f64)>);
+
+/// The labelled corners of `p` placed by `pl`.
+fn placed_corners(rig: &Rig, p: &Partial, pl: &Placement) -> Vec<LabelledCorner> {
+    let face = &rig.faces[pl.face];
+    p.corners
+        .iter()
+        .map(|g| {
+            let (r, c) = pl.map(p, g.r, g.c);
+            LabelledCorner {
+                row: r,
+                col: c,
+                xyz: face.corner_xyz(r, c),
+                uv: g.uv,
+                sigma_px: g.sigma_px,
+            }
+        })
+        .collect()
+}
+
+/// Partial grids cut at a fold, placed by where their pattern visibly ends — at the fold, or where the
+/// squares give way to a uniform surface — when the frame shows no complete face to place them
+/// against (or [`place`] could not): faces cut by the frame border, such as the walls of an inside
+/// corner that run off the picture everywhere but at the fold, the floor and the ceiling. A grid with
+/// no side at a fold is not placed this way (fuzzing: a board cut by the border beside a grazing face
+/// was placed by their margins alone).
+///
+/// Each grid's pattern ends fix its offset on a face (see [`edge_placements`]), and its square
+/// colours must agree; the faces of all such grids of the frame (with the faces already found) must
+/// then fit one camera: every joint assignment of distinct faces is fitted with the normalised DLT,
+/// and the best must fit [`PLACEMENT_MARGIN`] times better than any other and within
+/// [`MAX_PLACEMENT_RMS_STEPS`] of the grids' step. A grid on one plane alone cannot be confirmed by
+/// the geometry and is not placed (a lone board cut by the border: fuzzing found random content and
+/// other boards that a visible end and colours would place). Through the fitted camera, every corner
+/// of each face that its grid lacks must lie outside the frame or within one step of its border.
+pub(super) fn place_by_edges(
+    img: &GrayImage,
+    rig: &Rig,
+    found: &[FaceDetection],
+    partials: Vec<(Partial, String)>,
+) -> (Vec<FaceDetection>, Vec<Rejection>) {
+    let taken: Vec<usize> = found.iter().map(|f| f.face).collect();
+    let mut rejected = Vec::new();
+    let mut open: Vec<EdgePlaced> = Vec::new();
+    for (p, why) in partials {
+        let reject = |p: &Partial, more: String| Rejection {
+            reason: format!("{}; not placed on the rig: {why}; {more}", p.reason),
+            corners: p.grid_corners(),
+        };
+        if p.corners.len() < MIN_PARTIAL_CORNERS || p.rows < 3 || p.cols < 3 {
+            rejected.push(reject(&p, "too small to place by its edges".into()));
+            continue;
+        }
+        let q = if p.handedness() > 0.0 {
+            p.transposed()
+        } else {
+            p.clone()
+        };
+        match edge_placements(img, rig, &taken, &q) {
+            Ok(c) => open.push((q, why, c)),
+            Err(more) => rejected.push(reject(&p, more)),
+        }
+    }
+    if open.is_empty() {
+        return (Vec::new(), rejected);
+    }
+    let reject_all = |open: &[EdgePlaced], more: &str| {
+        open.iter()
+            .map(|(p, why, _)| Rejection {
+                reason: format!(
+                    "{}; not placed on the rig: {why}; placed by its edges: {more}",
+                    p.reason
+                ),
+                corners: p.grid_corners(),
+            })
+            .collect::<Vec<_>>()
+    };
+    let known: Vec<(Vector3<f64>, Vector2<f64>)> = found
+        .iter()
+        .flat_map(|f| f.corners.iter().map(|c| (c.xyz, c.uv)))
+        .collect();
+    let total = open
+        .iter()
+        .map(|o| o.2.len())
+        .try_fold(1usize, |a, n| a.checked_mul(n))
+        .unwrap_or(usize::MAX);
+    if total > super::identity::MAX_ASSIGNMENTS {
+        rejected.extend(reject_all(&open, &format!("{total} assignments to try")));
+        return (Vec::new(), rejected);
+    }
+    let mut scored: Vec<(f64, Vec<usize>)> = Vec::new();
+    let mut pick = vec![0usize; open.len()];
+    'all: loop {
+        let faces: Vec<usize> = pick
+            .iter()
+            .zip(&open)
+            .map(|(&k, o)| o.2[k].0.face)
+            .collect();
+        if repeated(faces.into_iter()).is_empty() {
+            let mut pts = known.clone();
+            for (&k, (p, _, c)) in pick.iter().zip(&open) {
+                pts.extend(
+                    placed_corners(rig, p, &c[k].0)
+                        .iter()
+                        .map(|c| (c.xyz, c.uv)),
+                );
+            }
+            if let Some(rms) = dlt_fit(&pts).and_then(|pm| reprojection_rms(&pm, &pts)) {
+                scored.push((rms, pick.clone()));
+            }
+        }
+        for (i, o) in open.iter().enumerate() {
+            pick[i] += 1;
+            if pick[i] < o.2.len() {
+                continue 'all;
+            }
+            pick[i] = 0;
+        }
+        break;
+    }
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let Some((best, chosen)) = scored.first().cloned() else {
+        rejected.extend(reject_all(
+            &open,
+            "no assignment of distinct faces fits a camera (the grids are coplanar, or a lone grid: one plane does not confirm the placement)",
+        ));
+        return (Vec::new(), rejected);
+    };
+    if let Some((second, _)) = scored.get(1)
+        && *second < PLACEMENT_MARGIN * best
+    {
+        rejected.extend(reject_all(
+            &open,
+            &format!(
+                "two assignments fit one camera alike (DLT RMS {best:.2} px and {second:.2} px)"
+            ),
+        ));
+        return (Vec::new(), rejected);
+    }
+    let mut steps: Vec<f64> = open.iter().filter_map(|o| o.0.step()).collect();
+    let step = median(&mut steps).unwrap_or(0.0);
+    if best > MAX_PLACEMENT_RMS_STEPS * step {
+        rejected.extend(reject_all(
+            &open,
+            &format!("the best assignment fits one camera with DLT RMS {best:.2} px, more than {MAX_PLACEMENT_RMS_STEPS} of the step {step:.1} px"),
+        ));
+        return (Vec::new(), rejected);
+    }
+    let placed: Vec<FaceDetection> = chosen
+        .iter()
+        .zip(&open)
+        .map(|(&k, (p, _, c))| FaceDetection {
+            face: c[k].0.face,
+            corners: placed_corners(rig, p, &c[k].0),
+            colour_contrast: c[k].1,
+        })
+        .collect();
+    // Extent: each face's corners that its grid lacks lie outside the frame (or hug its border).
+    let mut all = known;
+    all.extend(
+        placed
+            .iter()
+            .flat_map(|f| f.corners.iter().map(|c| (c.xyz, c.uv))),
+    );
+    let Some(pm) = dlt_fit(&all) else {
+        rejected.extend(reject_all(&open, "the faces are coplanar"));
+        return (Vec::new(), rejected);
+    };
+    let (w, h) = (f64::from(img.width()), f64::from(img.height()));
+    for f in &placed {
+        let face = &rig.faces[f.face];
+        let has: std::collections::HashSet<(usize, usize)> =
+            f.corners.iter().map(|c| (c.row, c.col)).collect();
+        let (rmin, rmax) = f
+            .corners
+            .iter()
+            .fold((usize::MAX, 0), |m, c| (m.0.min(c.row), m.1.max(c.row)));
+        let (cmin, cmax) = f
+            .corners
+            .iter()
+            .fold((usize::MAX, 0), |m, c| (m.0.min(c.col), m.1.max(c.col)));
+        for r in 0..face.rows {
+            for c in 0..face.cols {
+                if has.contains(&(r, c))
+                    || ((rmin..=rmax).contains(&r) && (cmin..=cmax).contains(&c))
+                {
+                    continue;
+                }
+                let x = pm * face.corner_xyz(r, c).push(1.0);
+                if x.z <= 0.0 {
+                    continue;
+                }
+                let (u, v) = (x.x / x.z, x.y / x.z);
+                if u > step && v > step && u < w - 1.0 - step && v < h - 1.0 - step {
+                    rejected.extend(reject_all(
+                        &open,
+                        &format!("as face '{}' its grid would show corner ({r}, {c}) inside the frame at ({u:.0}, {v:.0}), which it lacks", face.name),
+                    ));
+                    return (Vec::new(), rejected);
+                }
+            }
+        }
+    }
+    tracing::debug!(
+        best,
+        step,
+        faces = placed.len(),
+        "partial grids placed by their pattern ends"
+    );
+    (placed, rejected)
 }
 
 #[cfg(test)]

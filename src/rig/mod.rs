@@ -19,6 +19,8 @@
 //! row_dir = [0, 1, 0]          # direction of increasing row
 //! margin_mm = 10.0             # optional white border around the squares (default: one square)
 //! first_square = "black"       # optional colour of square (0, 0) (default: black)
+//! open_sides = ["first_row"]   # optional: sides where the printed pattern runs on beyond the corners
+//!                              # described (a board larger than any view shows; see below)
 //! ```
 //!
 //! ## Face geometry
@@ -27,6 +29,14 @@
 //! `a ∈ [(j−1)·s, j·s]` along `col_dir` and `b ∈ [(i−1)·s, i·s]` along `row_dir`, so square `(0, 0)` is
 //! the one diagonally before corner `(0, 0)`, and its colour alternates from `first_square`. The
 //! face **normal** is `col_dir × row_dir` and points out of the printed side, toward the viewer.
+//!
+//! ## Open sides
+//! `open_sides` lists the sides of a face (`first_row`, `last_row`, `first_col`, `last_col`: the
+//! outermost row or column of inner corners) beyond which the printed pattern continues further than
+//! the rig describes — a board that runs off every view, whose true end is never seen. `rows`/`cols`
+//! then count only the corners described, and the detector never takes a grid's end for that side:
+//! such a face is labelled only by the sides where its pattern visibly ends (a margin, a seam or a
+//! fold), never by its size. Each side at most once; at least one side must stay closed on each axis.
 //!
 //! Parsing follows "parse, then validate": the TOML lands in plain serde structs whose fields are all
 //! optional ([`RawRig`]); validation turns them into [`Rig`] and names every bad key by its path
@@ -184,6 +194,47 @@ pub struct Face {
     pub row_dir: Vector3<f64>,
     /// Colour of square `(0, 0)`.
     pub first_square: SquareColour,
+    /// Sides beyond which the pattern continues further than described (see the module docs).
+    pub open_sides: Vec<FaceSide>,
+}
+
+/// A side of a face: its outermost row or column of inner corners.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FaceSide {
+    FirstRow,
+    LastRow,
+    FirstCol,
+    LastCol,
+}
+
+impl FaceSide {
+    pub const ALL: [FaceSide; 4] = [
+        FaceSide::FirstRow,
+        FaceSide::LastRow,
+        FaceSide::FirstCol,
+        FaceSide::LastCol,
+    ];
+
+    /// The key's spelling in a rig file.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            FaceSide::FirstRow => "first_row",
+            FaceSide::LastRow => "last_row",
+            FaceSide::FirstCol => "first_col",
+            FaceSide::LastCol => "last_col",
+        }
+    }
+
+    /// The side across the face.
+    pub fn opposite(self) -> FaceSide {
+        match self {
+            FaceSide::FirstRow => FaceSide::LastRow,
+            FaceSide::LastRow => FaceSide::FirstRow,
+            FaceSide::FirstCol => FaceSide::LastCol,
+            FaceSide::LastCol => FaceSide::FirstCol,
+        }
+    }
 }
 
 /// Where a point of a face's plane falls on the printed board.
@@ -198,6 +249,17 @@ pub enum BoardRegion {
 }
 
 impl Face {
+    /// Rig-frame position of the lattice point `(row, col)`, which may lie outside the face's inner
+    /// corners (negative or beyond `rows`/`cols`): e.g. one step beyond a side.
+    pub fn lattice_xyz(&self, row: f64, col: f64) -> Vector3<f64> {
+        self.origin + self.col_dir * (col * self.square_mm) + self.row_dir * (row * self.square_mm)
+    }
+
+    /// Whether the pattern runs on beyond `side` (listed in `open_sides`).
+    pub fn is_open(&self, side: FaceSide) -> bool {
+        self.open_sides.contains(&side)
+    }
+
     /// Rig-frame position of inner corner `(row, col)`.
     pub fn corner_xyz(&self, row: usize, col: usize) -> Vector3<f64> {
         self.origin
@@ -343,6 +405,8 @@ pub struct RawFace {
     pub margin_mm: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub first_square: Option<SquareColour>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub open_sides: Option<Vec<String>>,
     /// The face's surveyed deviation from the nominal rig file (informational, not used).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub survey: Option<survey::FaceSurvey>,
@@ -571,6 +635,31 @@ impl RawRig {
                     col_dir.dot(&row_dir)
                 )));
             }
+            let mut open_sides: Vec<FaceSide> = Vec::new();
+            for (i, text) in rf.open_sides.iter().flatten().enumerate() {
+                let Some(side) = FaceSide::ALL.into_iter().find(|s| s.as_str() == text) else {
+                    return Err(invalid(
+                        &key(&format!("open_sides[{i}]")),
+                        "one of \"first_row\", \"last_row\", \"first_col\", \"last_col\"",
+                        format!("{text:?}"),
+                    ));
+                };
+                if open_sides.contains(&side) {
+                    return Err(invalid(
+                        &key(&format!("open_sides[{i}]")),
+                        "each side at most once",
+                        format!("{text:?} twice"),
+                    ));
+                }
+                if open_sides.contains(&side.opposite()) {
+                    return Err(invalid(
+                        &key(&format!("open_sides[{i}]")),
+                        "at most one of two opposite sides (the other fixes where the rows or columns start)",
+                        format!("{text:?} and {:?}", side.opposite().as_str()),
+                    ));
+                }
+                open_sides.push(side);
+            }
             // Exact Gram–Schmidt within the tolerance.
             let col_dir = col_dir.normalize();
             let row_dir = (row_dir - col_dir * col_dir.dot(&row_dir)).normalize();
@@ -584,6 +673,7 @@ impl RawRig {
                 col_dir,
                 row_dir,
                 first_square: rf.first_square.unwrap_or(SquareColour::Black),
+                open_sides,
             });
         }
         for a in 0..faces.len() {
@@ -619,8 +709,11 @@ impl RawRig {
         for a in 0..faces.len() {
             for b in a + 1..faces.len() {
                 let (fa, fb) = (&faces[a], &faces[b]);
-                if (fa.cols, fa.rows) == (fb.cols, fb.rows)
-                    || (fa.cols, fa.rows) == (fb.rows, fb.cols)
+                // A face with open sides is never told apart by its size.
+                let sized = fa.open_sides.is_empty() && fb.open_sides.is_empty();
+                if sized
+                    && ((fa.cols, fa.rows) == (fb.cols, fb.rows)
+                        || (fa.cols, fa.rows) == (fb.rows, fb.cols))
                 {
                     warnings.push(RigWarning::SameGridSize {
                         a: fa.name.clone(),

@@ -89,6 +89,12 @@ impl Rig {
                         row_dir: Some(f.row_dir.into()),
                         margin_mm: Some(f.margin_mm),
                         first_square: Some(f.first_square),
+                        open_sides: (!f.open_sides.is_empty()).then(|| {
+                            f.open_sides
+                                .iter()
+                                .map(|s| s.as_str().to_string())
+                                .collect()
+                        }),
                         survey: None,
                     })
                     .collect(),

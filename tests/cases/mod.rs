@@ -11,7 +11,9 @@
 //!   size, 1600×1200;
 //! - `wrapped-cube`: one sheet of squares wrapped around a vertical edge of a box (two faces of 6×10,
 //!   30 mm squares; the fold on a line of the sheet's corners), strong barrel distortion (k1 −0.3);
-//! - `cut`: the 13×12 board with margin, cut by the frame border (no complete face in the frame).
+//! - `cut`: the 13×12 board with margin, cut by the frame border (no complete face in the frame);
+//! - `photo-corner`: a replica of the real inside corner of `bailus_tsai_cube_stereo` (two walls, the
+//!   pattern continuous across the fold, one wall running off the frame, k1 −0.3 at a wide angle).
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
 use std::path::{Path, PathBuf};
@@ -261,6 +263,43 @@ pub fn cases(n: usize) -> Vec<Case> {
             scene,
             camera,
             settings: settings(16),
+            poses,
+        });
+    }
+    {
+        // A replica of the inside corner of bailus_tsai_cube_stereo (fixtures/rigs/bailus_inside_corner.toml):
+        // the camera close to the corner with a wide, strongly distorted lens, the pattern continuous
+        // across the fold; wall-z ends inside the frame on every side, wall-x (longer in the scene than
+        // the rig describes, as its open side says) runs off the frame on its side away from the fold.
+        // The camera stands further back than in the photos, so wall-x shows more columns than the
+        // photos' 9: the rig describes 20 of them (its open side), the scene prints 40.
+        let mut rig = rig("bailus_inside_corner.toml");
+        rig.faces[1].rows = 20;
+        let mut scene = rig.clone();
+        scene.faces[1].rows = 40;
+        scene.faces[1].open_sides.clear();
+        let camera = camera(1500, 1125, 1300.0, -0.25);
+        let up = Vector3::new(0.0, -1.0, 0.0);
+        // Eye and target (rig frame, mm).
+        let views: [([f64; 3], [f64; 3]); 6] = [
+            ([330.0, 40.0, 330.0], [30.0, 50.0, 120.0]),
+            ([360.0, 60.0, 300.0], [40.0, 50.0, 110.0]),
+            ([300.0, 20.0, 360.0], [20.0, 60.0, 130.0]),
+            ([340.0, 80.0, 330.0], [35.0, 40.0, 115.0]),
+            ([380.0, 50.0, 360.0], [50.0, 50.0, 130.0]),
+            ([320.0, 30.0, 310.0], [25.0, 55.0, 110.0]),
+        ];
+        let poses = views
+            .iter()
+            .take(n)
+            .map(|(e, t)| look_at(&Vector3::from(*e), &Vector3::from(*t), &up))
+            .collect();
+        out.push(Case {
+            name: "photo-corner",
+            rig,
+            scene,
+            camera,
+            settings: settings(17),
             poses,
         });
     }
