@@ -58,6 +58,11 @@ fn main() -> anyhow::Result<()> {
     let (camera, mut settings) = (eval_set.camera(), eval_set.settings());
     // NOISE=σ overrides the set's pixel noise (NOISE=0: the detector's noise-free bias).
     let noise: Option<f64> = std::env::var("NOISE").ok().map(|s| s.parse()).transpose()?;
+    // SS=n overrides the renderer's supersampling (n×n samples per edge pixel; default 4).
+    let ss: Option<u32> = std::env::var("SS").ok().map(|s| s.parse()).transpose()?;
+    if let Some(n) = ss {
+        settings.supersample = n;
+    }
     if let Some(sigma) = noise {
         settings.noise_sigma = sigma;
     }
@@ -71,6 +76,9 @@ fn main() -> anyhow::Result<()> {
     let mut dir_name = set.to_string();
     if pan_deg != 0.0 {
         dir_name += &format!("-pan{pan_deg}");
+    }
+    if let Some(n) = ss {
+        dir_name += &format!("-ss{n}");
     }
     if let Some(sigma) = noise {
         dir_name += &format!("-noise{sigma}");
