@@ -27,7 +27,7 @@
 //! lattice was the face (the common case: a board with margins, a cube face) is left as it is, at no
 //! cost. A corner whose fit fails keeps its position and σ.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 
 use image::GrayImage;
 use nalgebra::{Matrix2, Vector2};
@@ -53,17 +53,11 @@ fn key(uv: &Vector2<f64>) -> [u64; 2] {
 /// Whether `face`'s corners are a strict part of one of the `grids` they were labelled from: all of
 /// them are corners of that grid, and the grid has fitted corners that are not the face's.
 fn cut_from_larger(face: &FaceDetection, grids: &[Completed]) -> bool {
-    let Some(first) = face.corners.first() else {
-        return false;
-    };
-    let k = key(&first.uv);
-    grids.iter().any(|g| {
-        let cells: Vec<[u64; 2]> = g.cells.iter().flatten().map(|f| key(&f.uv)).collect();
-        cells.contains(&k) && cells.len() > face.corners.len() && {
-            let own: std::collections::HashSet<[u64; 2]> = cells.into_iter().collect();
-            face.corners.iter().all(|c| own.contains(&key(&c.uv)))
-        }
-    })
+    !face.corners.is_empty()
+        && grids.iter().any(|g| {
+            let own: HashSet<[u64; 2]> = g.cells.iter().flatten().map(|f| key(&f.uv)).collect();
+            own.len() > face.corners.len() && face.corners.iter().all(|c| own.contains(&key(&c.uv)))
+        })
 }
 
 /// Fit every corner of the faces in `faces` that were cut from a larger lattice of `grids` again on

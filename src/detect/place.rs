@@ -47,7 +47,7 @@
 //! 64 of 70 whole faces, hard 49 → 51 of 66).
 
 use image::GrayImage;
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix3x4, Vector2, Vector3};
 
 use super::complete::{Completed, median};
 use super::dense::Dense;
@@ -57,7 +57,7 @@ use super::identity::{
     ColourSums, MIN_COLOUR_CONTRAST, dlt_fit, mean_square_intensity, repeated, reprojection_rms,
 };
 use super::label::{self, FaceDetection, LabelledCorner, Rejection};
-use crate::rig::{FaceSide, Rig};
+use crate::rig::{Face, FaceSide, Rig};
 
 /// The best placement's geometric RMS must be this many times smaller than any other's.
 pub const PLACEMENT_MARGIN: f64 = 3.0;
@@ -399,30 +399,11 @@ fn place_one(
     let mut all = known;
     all.extend(corners.iter().map(|c| (c.xyz, c.uv)));
     let pm = dlt_fit(&all).ok_or("the faces are coplanar: the rig geometry cannot place it")?;
-    let (rmin, rmax) = corners
-        .iter()
-        .fold((usize::MAX, 0), |m, c| (m.0.min(c.row), m.1.max(c.row)));
-    let (cmin, cmax) = corners
-        .iter()
-        .fold((usize::MAX, 0), |m, c| (m.0.min(c.col), m.1.max(c.col)));
-    let (w, h) = (f64::from(img.width()), f64::from(img.height()));
-    for r in 0..face.rows {
-        for c in 0..face.cols {
-            if (rmin..=rmax).contains(&r) && (cmin..=cmax).contains(&c) {
-                continue;
-            }
-            let x = pm * face.corner_xyz(r, c).push(1.0);
-            if x.z <= 0.0 {
-                continue;
-            }
-            let (u, v) = (x.x / x.z, x.y / x.z);
-            if u > step && v > step && u < w - 1.0 - step && v < h - 1.0 - step {
-                return Err(format!(
-                    "as face '{}' it would show corner ({r}, {c}) inside the frame at ({u:.0}, {v:.0}), which it lacks",
-                    face.name
-                ));
-            }
-        }
+    if let Some((r, c, u, v)) = lacked_corner_in_frame(&pm, face, &corners, step, img) {
+        return Err(format!(
+            "as face '{}' it would show corner ({r}, {c}) inside the frame at ({u:.0}, {v:.0}), which it lacks",
+            face.name
+        ));
     }
     Ok(FaceDetection {
         face: pl.face,
@@ -880,39 +861,14 @@ pub(super) fn place_by_edges(
         rejected.extend(reject_all(&open, "the faces are coplanar"));
         return (Vec::new(), rejected);
     };
-    let (w, h) = (f64::from(img.width()), f64::from(img.height()));
     for f in &placed {
         let face = &rig.faces[f.face];
-        let has: std::collections::HashSet<(usize, usize)> =
-            f.corners.iter().map(|c| (c.row, c.col)).collect();
-        let (rmin, rmax) = f
-            .corners
-            .iter()
-            .fold((usize::MAX, 0), |m, c| (m.0.min(c.row), m.1.max(c.row)));
-        let (cmin, cmax) = f
-            .corners
-            .iter()
-            .fold((usize::MAX, 0), |m, c| (m.0.min(c.col), m.1.max(c.col)));
-        for r in 0..face.rows {
-            for c in 0..face.cols {
-                if has.contains(&(r, c))
-                    || ((rmin..=rmax).contains(&r) && (cmin..=cmax).contains(&c))
-                {
-                    continue;
-                }
-                let x = pm * face.corner_xyz(r, c).push(1.0);
-                if x.z <= 0.0 {
-                    continue;
-                }
-                let (u, v) = (x.x / x.z, x.y / x.z);
-                if u > step && v > step && u < w - 1.0 - step && v < h - 1.0 - step {
-                    rejected.extend(reject_all(
-                        &open,
-                        &format!("as face '{}' its grid would show corner ({r}, {c}) inside the frame at ({u:.0}, {v:.0}), which it lacks", face.name),
-                    ));
-                    return (Vec::new(), rejected);
-                }
-            }
+        if let Some((r, c, u, v)) = lacked_corner_in_frame(&pm, face, &f.corners, step, img) {
+            rejected.extend(reject_all(
+                &open,
+                &format!("as face '{}' its grid would show corner ({r}, {c}) inside the frame at ({u:.0}, {v:.0}), which it lacks", face.name),
+            ));
+            return (Vec::new(), rejected);
         }
     }
     tracing::debug!(
@@ -922,6 +878,34 @@ pub(super) fn place_by_edges(
         "partial grids placed by their pattern ends"
     );
     (placed, rejected)
+}
+
+/// The first corner of `face` outside the rig-position box of `corners` that the camera `pm`
+/// projects in front of it and inside the frame, more than `step` from its border: a corner the
+/// grid would show but lacks, so the placement's extent is wrong. `(row, col, u, v)`.
+fn lacked_corner_in_frame(
+    pm: &Matrix3x4<f64>,
+    face: &Face,
+    corners: &[LabelledCorner],
+    step: f64,
+    img: &GrayImage,
+) -> Option<(usize, usize, f64, f64)> {
+    let (rmin, rmax) = corners
+        .iter()
+        .fold((usize::MAX, 0), |m, c| (m.0.min(c.row), m.1.max(c.row)));
+    let (cmin, cmax) = corners
+        .iter()
+        .fold((usize::MAX, 0), |m, c| (m.0.min(c.col), m.1.max(c.col)));
+    let (w, h) = (f64::from(img.width()), f64::from(img.height()));
+    (0..face.rows)
+        .flat_map(|r| (0..face.cols).map(move |c| (r, c)))
+        .filter(|(r, c)| !((rmin..=rmax).contains(r) && (cmin..=cmax).contains(c)))
+        .find_map(|(r, c)| {
+            let x = pm * face.corner_xyz(r, c).push(1.0);
+            let (u, v) = (x.x / x.z, x.y / x.z);
+            (x.z > 0.0 && u > step && v > step && u < w - 1.0 - step && v < h - 1.0 - step)
+                .then_some((r, c, u, v))
+        })
 }
 
 #[cfg(test)]
