@@ -12,7 +12,9 @@
 //! from the renderer's noise-free image model at `SS`×`SS` supersampling (default 16) and its noise.
 //! Printed per angle bucket: the measured RMS error, and each bound's RMS `sqrt(mean trace(cov))`;
 //! for 75–80° also per face, and by the corner's place in its grid. `BUCKETS=45-60,75-80` picks the
-//! buckets, `STEP_PX` the finite-difference step (image motion, default 0.1 px).
+//! buckets, `FRAMES=2,4,7` the frames, `STEP_PX` the finite-difference step (image motion, default
+//! 0.1 px), `MC=k` also fits a few corners of each face on `k` fresh noise draws over the model (the
+//! fit's scatter against its window bound).
 #![allow(clippy::print_stdout, clippy::print_stderr)]
 
 use std::collections::HashMap;
@@ -112,7 +114,14 @@ fn main() -> anyhow::Result<()> {
     let mut records = Vec::new();
     let mc: usize = env("MC").map(|s| s.parse()).transpose()?.unwrap_or(0);
     let mut monte_carlo: Vec<Draws> = Vec::new();
+    // FRAMES=2,4,7 restricts the run to those frames.
+    let frames: Option<Vec<usize>> = env("FRAMES")
+        .map(|f| f.split(',').map(str::parse).collect())
+        .transpose()?;
     for (k, pose) in set.poses(&rig, n).iter().enumerate() {
+        if frames.as_ref().is_some_and(|f| !f.contains(&k)) {
+            continue;
+        }
         let (png, _) = frame_paths(&dir, k as u64);
         let truth = ground_truth(&rig, &camera, pose, &settings, k as u64);
         let img = if png.exists() {
