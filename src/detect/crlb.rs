@@ -42,14 +42,14 @@
 //!   too (the lines' curvature then has to be measured on the face).
 //!
 //! **Measured** (`MC=30 BUCKETS=75-80 cargo run --release --example crlb -- hard 24
-//! target/detect_eval`, 7 of the 13 faces found at 75–80°, 416 corners; a face takes 2–5 min on a
-//! loaded machine): measured RMS 0.160 px; window bound 0.163 px with the local model's unknowns,
-//! 0.148 px with only the position unknown; face bound 0.028 px (joint; 0.028 with `k1` unknown
-//! too). So 0.1 px is out of reach of any unbiased estimator of one corner from its fit window —
-//! the fit sits at its bound — but not of one that fits the face as a whole. Checks of the method:
-//! hard set 45–60° (frames 0, 2: 98 corners) 0.080 px measured against a bound of 0.086; realistic
-//! set 75–80° (frames 2, 4, 7: 156 corners) 0.0203 px against 0.0163; the fit on fresh noise over the
-//! model scatters at 0.98–1.01 of its window bound on both sets.
+//! target/detect_eval`: the 13 faces found at 75–80°, 753 corners; 1.5–5 min a face): measured RMS
+//! 0.160 px; window bound 0.164 px with the local model's unknowns, 0.149 px with only the position
+//! unknown; face bound 0.028 px (joint; 0.029 with `k1` unknown too). So 0.1 px is out of reach of
+//! any unbiased estimator of one corner from its fit window — the fit sits at its bound — but not of
+//! one that fits the face as a whole. Checks of the method: hard set 45–60° (frames 0, 2: 98
+//! corners) 0.080 px measured against a bound of 0.086; realistic set 75–80° (frames 2, 4, 7: 156
+//! corners) 0.0203 px against 0.0163; the fit on fresh noise over the model scatters at 0.96–1.01 of
+//! its window bound on both sets.
 //!
 //! Written here because this is a measurement of our own renderer, not a generic estimation tool.
 
