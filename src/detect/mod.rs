@@ -26,6 +26,7 @@ use nalgebra::Vector2;
 pub use front::CornerFinder;
 
 pub mod complete;
+pub mod crlb;
 mod dense;
 mod extent;
 pub mod fold;

@@ -752,6 +752,38 @@ pub fn refine_near_border(
     refine_reusing(img, p0, a, b, None, true)
 }
 
+/// [`refine_near_border`] (the fit grid corners get), also returning the pixels its final stage
+/// fitted, `[column, row]`: the window a bound on the corner's precision must be computed over (see
+/// [`super::crlb`]).
+pub fn refine_near_border_with_window(
+    img: &GrayImage,
+    p0: Vector2<f64>,
+    a: Vector2<f64>,
+    b: Vector2<f64>,
+) -> Result<(Refined, Vec<[u32; 2]>), RefineFailure> {
+    thread_local! {
+        static WINDOWS: Cell<[Window; 2]> = Cell::default();
+    }
+    WINDOWS.with(|cell| {
+        let mut windows = cell.take();
+        let result = refine_in(&mut windows, img, p0, a, b, None, true).map(|fit| {
+            let fine = &windows[1];
+            // The window keeps offsets from `p0` (whole pixels minus `p0`, in f32): round back.
+            let pixels = fine.x[..fine.n]
+                .iter()
+                .zip(&fine.y[..fine.n])
+                .map(|(&x, &y)| {
+                    let q = p0 + Vector2::new(f64::from(x), f64::from(y));
+                    [q.x.round() as u32, q.y.round() as u32]
+                })
+                .collect();
+            (fit, pixels)
+        });
+        cell.set(windows);
+        result
+    })
+}
+
 /// A smooth, locally invertible map from image pixels to a plane where the board's edges are
 /// straight lines (for a calibrated lens: the undistorted pinhole image, see
 /// [`super::undistorted`]).
