@@ -7,7 +7,7 @@
 use cubecal::camera::{Camera, Pose};
 use cubecal::capture::synthetic::{Palette, RenderSettings};
 use cubecal::detect::crlb::{
-    Crop, Param, View, efficient_position_covariance, expected_image, noise_variance,
+    Crop, LOCAL_PARAMS, Param, View, efficient_position_covariance, expected_image, noise_variance,
 };
 use cubecal::detect::refine::{refine_near_border, refine_near_border_with_window};
 use cubecal::rig::Rig;
@@ -224,18 +224,7 @@ fn the_corner_fit_scatters_at_its_window_bound() {
     };
     let d = |p: Param| view.derivative(p, crop, &[corner]).unwrap();
     let (dx, dy) = (d(Param::Cx), d(Param::Cy));
-    let nuisance: Vec<_> = [
-        Param::Fx,
-        Param::Fy,
-        Param::Skew,
-        Param::Roll,
-        Param::Black,
-        Param::White,
-        Param::Blur,
-    ]
-    .map(d)
-    .into_iter()
-    .collect();
+    let nuisance: Vec<_> = LOCAL_PARAMS.map(d).into_iter().collect();
     let local: Vec<(&[f64], Vector2<f64>)> = nuisance
         .iter()
         .map(|n| (n.image.as_slice(), n.motion[0]))

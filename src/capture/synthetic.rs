@@ -563,6 +563,34 @@ pub fn gaussian_blur(img: &LinearImage, sigma_px: f64) -> LinearImage {
     }
 }
 
+/// The camera's response of `settings` in a `w`×`h` frame with principal point (`cx`, `cy`): the
+/// grey level (before noise and rounding) of blurred radiance `v` at pixel (`j`, `i`), vignetting and
+/// gamma applied. [`finish`] and the Cramér–Rao bounds' noise-free image
+/// ([`crate::detect::crlb::expected_image`]) share it.
+pub fn response(
+    settings: &RenderSettings,
+    w: u32,
+    h: u32,
+    cx: f64,
+    cy: f64,
+) -> impl Fn(f64, f64, f64) -> f64 + '_ {
+    let r_max2 = [
+        (0.0, 0.0),
+        (f64::from(w) - 1.0, 0.0),
+        (0.0, f64::from(h) - 1.0),
+        (f64::from(w) - 1.0, f64::from(h) - 1.0),
+    ]
+    .iter()
+    .map(|(u, v)| (u - cx).powi(2) + (v - cy).powi(2))
+    .fold(1.0_f64, f64::max);
+    move |mut v, j, i| {
+        if settings.vignetting > 0.0 {
+            v *= 1.0 - settings.vignetting * ((j - cx).powi(2) + (i - cy).powi(2)) / r_max2;
+        }
+        v.max(0.0).powf(1.0 / settings.gamma) * 255.0
+    }
+}
+
 /// Apply the camera effects of `settings` to a radiance image and quantise to 8 bits. `frame` selects
 /// the noise stream.
 pub fn finish(
@@ -573,27 +601,14 @@ pub fn finish(
 ) -> GrayImage {
     let img = gaussian_blur(radiance, settings.blur_sigma_px);
     let (w, h) = (img.width, img.height);
-    let (cx, cy) = (camera.cx(), camera.cy());
-    let r_max2 = [
-        (0.0, 0.0),
-        (f64::from(w) - 1.0, 0.0),
-        (0.0, f64::from(h) - 1.0),
-        (f64::from(w) - 1.0, f64::from(h) - 1.0),
-    ]
-    .iter()
-    .map(|(u, v)| (u - cx).powi(2) + (v - cy).powi(2))
-    .fold(1.0_f64, f64::max);
+    let respond = response(settings, w, h, camera.cx(), camera.cy());
     let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
     rng.set_stream(frame);
     let noise = Normal::new(0.0, settings.noise_sigma).ok();
     let mut out = GrayImage::new(w, h);
     for (k, px) in out.pixels_mut().enumerate() {
         let (j, i) = ((k as u32 % w.max(1)) as f64, (k as u32 / w.max(1)) as f64);
-        let mut v = img.data[k];
-        if settings.vignetting > 0.0 {
-            v *= 1.0 - settings.vignetting * ((j - cx).powi(2) + (i - cy).powi(2)) / r_max2;
-        }
-        v = v.max(0.0).powf(1.0 / settings.gamma) * 255.0;
+        let mut v = respond(img.data[k], j, i);
         if settings.noise_sigma > 0.0
             && let Some(nd) = &noise
         {

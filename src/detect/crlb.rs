@@ -56,7 +56,9 @@
 use nalgebra::{DMatrix, DVector, Matrix2, Rotation3, Vector2, Vector3};
 
 use crate::camera::{Camera, Pose, idx};
-use crate::capture::synthetic::{RenderSettings, SyntheticError, gaussian_blur, render_radiance};
+use crate::capture::synthetic::{
+    RenderSettings, SyntheticError, gaussian_blur, render_radiance, response,
+};
 use crate::rig::{BoardRegion, Rig};
 
 /// A rectangle of the frame: columns `x0..x0 + width`, rows `y0..y0 + height`.
@@ -147,26 +149,13 @@ pub fn expected_image(
     cam.params[idx::CY] -= f64::from(py0);
     let radiance = render_radiance(rig, &cam, cam_from_rig, settings)?;
     let img = gaussian_blur(&radiance, settings.blur_sigma_px);
-    let (cx, cy) = (camera.cx(), camera.cy());
-    let r_max2 = [
-        (0.0, 0.0),
-        (f64::from(w) - 1.0, 0.0),
-        (0.0, f64::from(h) - 1.0),
-        (f64::from(w) - 1.0, f64::from(h) - 1.0),
-    ]
-    .iter()
-    .map(|(u, v)| (u - cx).powi(2) + (v - cy).powi(2))
-    .fold(1.0_f64, f64::max);
+    let respond = response(settings, w, h, camera.cx(), camera.cy());
     let pw = (px1 - px0) as usize;
     let mut out = Vec::with_capacity(crop.len());
     for i in crop.y0..crop.y0 + crop.height {
         for j in crop.x0..crop.x0 + crop.width {
-            let mut v = img.data[(i - py0) as usize * pw + (j - px0) as usize];
-            let (j, i) = (f64::from(j), f64::from(i));
-            if settings.vignetting > 0.0 {
-                v *= 1.0 - settings.vignetting * ((j - cx).powi(2) + (i - cy).powi(2)) / r_max2;
-            }
-            out.push(v.max(0.0).powf(1.0 / settings.gamma) * 255.0);
+            let v = img.data[(i - py0) as usize * pw + (j - px0) as usize];
+            out.push(respond(v, f64::from(j), f64::from(i)));
         }
     }
     Ok(out)
@@ -463,9 +452,34 @@ pub struct CornerBound {
     pub face_joint_k1: Matrix2<f64>,
 }
 
-/// The parameters [`corner_bounds`] needs derivatives of, in this order: the position (2), the local
-/// model's nuisances (7), the face's pose (6) and the levels and blur shared with the local model,
-/// and `k1`.
+/// The local corner model's nuisances besides the position: any affine change of the image
+/// (with the position), the two reflectances and the blur.
+pub const LOCAL_PARAMS: [Param; 7] = [
+    Param::Fx,
+    Param::Fy,
+    Param::Skew,
+    Param::Roll,
+    Param::Black,
+    Param::White,
+    Param::Blur,
+];
+
+/// A whole-face joint fit's unknowns with the camera known: the face's pose (6), and the levels and
+/// blur shared with the local model.
+pub const FACE_PARAMS: [Param; 9] = [
+    Param::Turn(0),
+    Param::Turn(1),
+    Param::Turn(2),
+    Param::Shift(0),
+    Param::Shift(1),
+    Param::Shift(2),
+    Param::Black,
+    Param::White,
+    Param::Blur,
+];
+
+/// The parameters [`corner_bounds`] needs derivatives of: the position (2), [`LOCAL_PARAMS`], the
+/// face's pose (the rest of [`FACE_PARAMS`]) and `k1`.
 pub const PARAMS: [Param; 16] = [
     Param::Cx,
     Param::Cy,
@@ -512,32 +526,11 @@ pub fn corner_bounds(
         get(Param::Cx)?.image.as_slice(),
         get(Param::Cy)?.image.as_slice(),
     ];
-    let local: Vec<(&[f64], Vector2<f64>)> = [
-        Param::Fx,
-        Param::Fy,
-        Param::Skew,
-        Param::Roll,
-        Param::Black,
-        Param::White,
-        Param::Blur,
-    ]
-    .iter()
-    .map(|&p| get(p).map(|d| (d.image.as_slice(), d.motion[probe])))
-    .collect::<Option<_>>()?;
-    let joint: Vec<&Derivative> = [
-        Param::Turn(0),
-        Param::Turn(1),
-        Param::Turn(2),
-        Param::Shift(0),
-        Param::Shift(1),
-        Param::Shift(2),
-        Param::Black,
-        Param::White,
-        Param::Blur,
-    ]
-    .iter()
-    .map(|&p| get(p))
-    .collect::<Option<_>>()?;
+    let local: Vec<(&[f64], Vector2<f64>)> = LOCAL_PARAMS
+        .iter()
+        .map(|&p| get(p).map(|d| (d.image.as_slice(), d.motion[probe])))
+        .collect::<Option<_>>()?;
+    let joint: Vec<&Derivative> = FACE_PARAMS.iter().map(|&p| get(p)).collect::<Option<_>>()?;
     let mut joint_images: Vec<&[f64]> = joint.iter().map(|d| d.image.as_slice()).collect();
     let mut joint_motion: Vec<Vector2<f64>> = joint.iter().map(|d| d.motion[probe]).collect();
     let face_joint = position_covariance_through(&joint_images, &joint_motion, face, var)?;

@@ -381,20 +381,7 @@ fn place_one(
             face.name
         ));
     }
-    let corners: Vec<LabelledCorner> = p
-        .corners
-        .iter()
-        .map(|g| {
-            let (r, c) = pl.map(&p, g.r, g.c);
-            LabelledCorner {
-                row: r,
-                col: c,
-                xyz: face.corner_xyz(r, c),
-                uv: g.uv,
-                sigma_px: g.sigma_px,
-            }
-        })
-        .collect();
+    let corners = placed_corners(rig, &p, &pl);
     // Extent: the face's other corners must lie outside the frame (or hug its border).
     let mut all = known;
     all.extend(corners.iter().map(|c| (c.xyz, c.uv)));
