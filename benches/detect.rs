@@ -7,8 +7,8 @@
 use std::time::{Duration, Instant};
 
 use cubecal::camera::{Camera, DistortionModel};
-use cubecal::capture::synthetic::{RenderSettings, default_view, render};
 use cubecal::detect::{CornerFinder, complete, detect, grid, label};
+use cubecal::render::{RenderSettings, default_view, render};
 use cubecal::rig::Rig;
 use image::GrayImage;
 use rand::{Rng, SeedableRng};

@@ -5,7 +5,7 @@
 use std::time::{Duration, Instant};
 
 use cubecal::calib::{self, SolveOptions};
-use cubecal::synthetic::{add_noise, cube_scenario, reference_camera};
+use cubecal::render::correspondences::{add_noise, cube_scenario, reference_camera};
 
 /// This thread's time on a CPU so far (ns), from `/proc/thread-self/schedstat`: on a loaded machine the
 /// wall-clock figures include the time other processes held the cores; this does not.
@@ -59,7 +59,7 @@ fn bench(label: &str, n_views: usize, reps: usize) {
 /// exact projections plus 0.03 px noise, solved with the rig refined (issue 20: ≤ 20 ms).
 fn bench_rig_refinement(reps: usize) {
     use cubecal::calib::{RigPoint, RigRefineOptions, RigView, solve_rig};
-    use cubecal::capture::synthetic::random_poses;
+    use cubecal::render::random_poses;
     use cubecal::rig::Rig;
     use nalgebra::{Rotation3, Vector2, Vector3};
     use rand::SeedableRng;

@@ -21,7 +21,6 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use anyhow::Context;
-use cubecal::capture::synthetic::{frame_paths, ground_truth, render, write_frame};
 use cubecal::detect::crlb::{
     CornerBound, Crop, View, corner_bounds, derivatives, expected_image, face_pixels,
     noise_variance,
@@ -29,6 +28,7 @@ use cubecal::detect::crlb::{
 use cubecal::detect::refine::{refine_near_border, refine_near_border_with_window};
 use cubecal::detect::score::{EvalSet, MISLABEL_PX, score};
 use cubecal::detect::{CornerFinder, detect};
+use cubecal::render::{frame_paths, ground_truth, render, write_frame};
 use cubecal::rig::Rig;
 use nalgebra::{Matrix2, Vector2};
 use rand::SeedableRng;
@@ -202,7 +202,7 @@ fn main() -> anyhow::Result<()> {
                 rig: &rig,
                 camera: camera.clone(),
                 cam_from_rig: *pose,
-                settings: cubecal::capture::synthetic::RenderSettings {
+                settings: cubecal::render::RenderSettings {
                     supersample: ss,
                     ..settings
                 },

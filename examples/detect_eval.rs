@@ -24,11 +24,11 @@ use anyhow::Context;
 use cubecal::calib::SolveOptions;
 use cubecal::camera::Pose;
 use cubecal::camera::{Camera, idx};
-use cubecal::capture::synthetic::{frame_paths, ground_truth, render, write_frame};
 use cubecal::detect::score::{
     Bias, EvalSet, Summary, imaged_radius, in_border_band, relative_radius, score,
 };
 use cubecal::detect::{CornerFinder, detect, refine_with_camera};
+use cubecal::render::{frame_paths, ground_truth, render, write_frame};
 use cubecal::rig::Rig;
 use nalgebra::Vector3;
 
@@ -200,7 +200,7 @@ fn main() -> anyhow::Result<()> {
 type Kept = (
     image::GrayImage,
     cubecal::detect::FrameDetection,
-    cubecal::capture::synthetic::GroundTruth,
+    cubecal::render::GroundTruth,
 );
 
 /// `REREFINE=1`: the corners fitted again in undistorted coordinates ([`refine_with_camera`]),
@@ -302,7 +302,7 @@ fn print_bias(all: &[cubecal::detect::score::FaceScore], camera: &Camera) {
 fn front_end_recall(
     finder: &mut CornerFinder,
     img: &image::GrayImage,
-    truth: &cubecal::capture::synthetic::GroundTruth,
+    truth: &cubecal::render::GroundTruth,
     frame: usize,
 ) -> anyhow::Result<()> {
     let candidates = finder.find(img)?;

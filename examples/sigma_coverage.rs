@@ -12,9 +12,9 @@
 #![allow(clippy::print_stdout, clippy::unwrap_used, clippy::expect_used)]
 
 use cubecal::calib::{self, RigRefineOptions, RigView, SolveOptions};
-use cubecal::capture::synthetic::{finish, render_radiance};
 use cubecal::detect::score::EvalSet;
 use cubecal::detect::{CornerFinder, detect};
+use cubecal::render::{finish, render_radiance};
 use cubecal::rig::{CornerId, Rig};
 use nalgebra::Vector2;
 use std::collections::HashMap;
@@ -60,7 +60,7 @@ fn main() {
             .map(|(k, rad)| {
                 let img = finish(rad, &camera, &settings, (1000 * (r + 1) + k) as u64);
                 let det = detect(&mut finder, &img, &rig).unwrap();
-                RigView::from_detection(&det, &format!("r{r}v{k}"))
+                det.to_rig_view(&format!("r{r}v{k}"))
             })
             .collect();
         for (k, v) in views.iter().enumerate() {

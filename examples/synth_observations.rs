@@ -7,8 +7,8 @@
 //! Arguments: number of views, noise σ (px), seed.
 #![allow(clippy::print_stdout, clippy::print_stderr)]
 
-use cubecal::observations::Observations;
-use cubecal::synthetic::{add_noise, cube_scenario, reference_camera};
+use cubecal::calib::observations::Observations;
+use cubecal::render::correspondences::{add_noise, cube_scenario, reference_camera};
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();

@@ -18,18 +18,26 @@
 //!   `(k1, k2, p1, p2, k3, k4, k5, k6)`. A profile therefore means the same thing in OpenCV.
 //!
 //! ## Modules
+//! In layers: each imports only modules above it in this list, so the imports form no circle
+//! ([`exit`] is used by all). The station stores profiles but renders nothing; the report reads runs
+//! and profiles and never calls the station.
 //! - [`camera`]: camera model — K, distortion models, project/unproject.
-//! - [`calib`]: solvers — normalized DLT, RQ, homographies, Zhang, Levenberg–Marquardt, uncertainty.
 //! - [`rig`]: rig descriptions (faces, grids, square size, 3D layout) loaded from TOML.
-//! - [`capture`]: the `FrameSource` trait; V4L2, replay of recorded sessions, synthetic rendering.
-//! - [`detect`]: corners in a grayscale frame → checkerboard grids (→ labelled correspondences).
-//! - [`synthetic`]: synthetic 2D–3D correspondences with exact ground truth (tests, benchmarks).
-//! - [`observations`]: the correspondence file format read by `cubecal solve`.
+//! - [`calib`]: solvers — normalized DLT, RQ, homographies, Zhang, one Levenberg–Marquardt with
+//!   uncertainty, rig refinement; the correspondence file format read by `cubecal solve`.
+//! - [`render`]: the exact synthetic renderer (ground truth for every test) and exact synthetic
+//!   correspondences; not a capture device.
+//! - [`detect`]: corners in a grayscale frame → checkerboard grids → labelled correspondences.
 //! - [`turntable`]: the `Turntable` trait, serial drivers and simulators.
+//! - [`capture`]: the `FrameSource` trait; V4L2, replay of recorded sessions, photos, synthetic
+//!   cameras (which call [`render`]).
+//! - [`run`]: the data of a run — verdict and checks, `result.json`, the run directory's layout —
+//!   written by the station, read by the profile store, the report and the front ends.
 //! - [`profile`]: per-device profiles — the crash-safe versioned store and the OpenCV/ROS/mrcal exports.
+//! - [`station`]: the run — set-up, plan, move, capture, detect, solve, judge, write; it emits events
+//!   and results and calls none of their renderers.
 //! - [`report`]: self-contained HTML reports with plots (and the same plots as PNG) of station runs
-//!   and of stored profiles with their history.
-//! - [`station`]: the run — plan, move, capture, detect, solve, judge, write.
+//!   and of stored profiles with their history: a renderer of run data, like the CLI and the service.
 //! - [`exit`]: the process exit codes (an API).
 
 pub mod calib;
@@ -37,10 +45,10 @@ pub mod camera;
 pub mod capture;
 pub mod detect;
 pub mod exit;
-pub mod observations;
 pub mod profile;
+pub mod render;
 pub mod report;
 pub mod rig;
+pub mod run;
 pub mod station;
-pub mod synthetic;
 pub mod turntable;

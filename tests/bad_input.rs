@@ -3,8 +3,8 @@
 
 use std::path::Path;
 
+use cubecal::calib::observations::Observations;
 use cubecal::calib::{self, Correspondence, SolveOptions, View};
-use cubecal::observations::Observations;
 use nalgebra::{Vector2, Vector3};
 use proptest::prelude::*;
 

@@ -4,7 +4,7 @@
 
 use cubecal::calib::{self, CalibError, Correspondence, Fix, SolveOptions, View};
 use cubecal::camera::{DistortionModel, PARAM_NAMES, idx};
-use cubecal::synthetic::{add_noise, cube_scenario, reference_camera};
+use cubecal::render::correspondences::{add_noise, cube_scenario, reference_camera};
 use nalgebra::{Vector2, Vector3};
 
 fn rel(a: f64, b: f64) -> f64 {

@@ -692,7 +692,7 @@ fn vivid_loop_rendered_rig_is_detected_against_ground_truth() {
     let dir = env_path("CUBECAL_VM_RENDER");
     let (rig, _) = cubecal::rig::Rig::load(&dir.join("rig.toml")).unwrap();
     let rendered = image::open(dir.join("frame_000.png")).unwrap().to_luma8();
-    let gt: cubecal::capture::synthetic::GroundTruth =
+    let gt: cubecal::render::GroundTruth =
         serde_json::from_str(&std::fs::read_to_string(dir.join("frame_000.json")).unwrap())
             .unwrap();
     let cap_path = env_path("CUBECAL_VIVID_HDMI_CAP");

@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-use cubecal::capture::synthetic::{GroundTruth, Palette};
+use cubecal::render::{GroundTruth, Palette};
 
 /// Render the default view of the cube at 160×120 (no noise, linear output) with `extra` options.
 fn render(out_dir: &Path, extra: &[&str]) -> Output {

@@ -5,13 +5,13 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stderr)]
 
 use cubecal::camera::{Camera, Pose};
-use cubecal::capture::synthetic::{Palette, RenderSettings};
 use cubecal::detect::crlb::{
     Crop, LOCAL_PARAMS, Param, View, efficient_position_covariance, expected_image, noise_variance,
 };
 use cubecal::detect::refine::{refine_near_border, refine_near_border_with_window};
+use cubecal::render::correspondences::look_at;
+use cubecal::render::{Palette, RenderSettings};
 use cubecal::rig::Rig;
-use cubecal::synthetic::look_at;
 use nalgebra::{Vector2, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

@@ -7,10 +7,10 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use cubecal::calib::observations::Observations;
 use cubecal::calib::{self, CalibError, Calibration, Fix, SolveOptions, View};
 use cubecal::camera::{Camera, DistortionModel, idx};
-use cubecal::observations::Observations;
-use cubecal::synthetic::{add_noise, cube_scenario, reference_camera};
+use cubecal::render::correspondences::{add_noise, cube_scenario, reference_camera};
 use nalgebra::Vector2;
 
 /// Move point `j` of view `i` by `dist_px` in a direction that varies with the point.

@@ -443,8 +443,8 @@ fn boards_cut_by_the_border_are_not_labelled_as_faces() {
 /// The uncut frame must give 'top' (so the cut frames fail for the cut alone); it is returned first.
 fn cut_cube_faces() -> (GrayImage, Vec<(&'static str, GrayImage)>) {
     use cubecal::camera::{Camera, DistortionModel, Pose};
-    use cubecal::capture::synthetic::{ground_truth, render};
     use cubecal::detect::score::EvalSet;
+    use cubecal::render::{ground_truth, render};
     use nalgebra::{Rotation3, Vector3};
 
     let rig = &rigs()[0];

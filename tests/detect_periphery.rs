@@ -6,9 +6,9 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stderr)]
 
 use cubecal::calib::{SolveOptions, solve};
-use cubecal::capture::synthetic::{GroundTruth, ground_truth, render};
 use cubecal::detect::score::{Bias, EvalSet, FaceScore, Summary, in_border_band, score};
 use cubecal::detect::{CornerFinder, FrameDetection, detect, refine_with_camera};
+use cubecal::render::{GroundTruth, ground_truth, render};
 use cubecal::rig::Rig;
 
 fn rig() -> Rig {

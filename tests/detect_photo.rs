@@ -18,10 +18,10 @@
 
 use std::path::{Path, PathBuf};
 
+use cubecal::calib::observations::Observations;
 use cubecal::calib::{Fix, SolveOptions, solve};
 use cubecal::camera::DistortionModel;
 use cubecal::detect::{CornerFinder, detect};
-use cubecal::observations::Observations;
 use cubecal::rig::Rig;
 
 /// The labels' own noise: the bar for label–corner distances and for the calibration's reprojection.

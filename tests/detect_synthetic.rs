@@ -5,9 +5,9 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stderr)]
 
 use cubecal::camera::Pose;
-use cubecal::capture::synthetic::{ground_truth, render};
 use cubecal::detect::score::{EvalSet, FaceScore, Summary, score};
 use cubecal::detect::{CornerFinder, detect};
+use cubecal::render::{ground_truth, render};
 use cubecal::rig::Rig;
 use nalgebra::Vector3;
 

@@ -9,9 +9,10 @@ use std::time::Duration;
 use cubecal::camera::{Camera, DistortionModel, Pose};
 use cubecal::capture::CaptureError;
 use cubecal::capture::FrameSource;
-use cubecal::capture::synthetic::{
-    GroundTruth, LinearImage, RenderSettings, SyntheticSource, default_view, gaussian_blur,
-    ground_truth, random_poses, render, render_radiance, turntable_poses,
+use cubecal::capture::synthetic::SyntheticSource;
+use cubecal::render::{
+    GroundTruth, LinearImage, RenderSettings, default_view, gaussian_blur, ground_truth,
+    random_poses, render, render_radiance, turntable_poses,
 };
 use cubecal::rig::Rig;
 use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
@@ -79,7 +80,7 @@ fn saddle_point(img: &LinearImage, start: Vector2<f64>, sigma_w: f64) -> Option<
 /// fit window sees a single X-junction.
 fn isolated_visible(gt: &GroundTruth, min_px: f64, border: f64) -> Vec<(usize, Vector2<f64>)> {
     let [w, h] = gt.camera.image_size;
-    let uv = |c: &cubecal::capture::synthetic::CornerTruth| c.uv.map(|[u, v]| Vector2::new(u, v));
+    let uv = |c: &cubecal::render::CornerTruth| c.uv.map(|[u, v]| Vector2::new(u, v));
     gt.corners
         .iter()
         .enumerate()
@@ -303,7 +304,7 @@ fn nearer_faces_occlude_corners_and_pixels() {
     let camera = Camera::pinhole([320, 240], 300.0, 300.0, 159.5, 119.5);
     // Looking straight down −z at the back board from 600 mm.
     let eye = Vector3::new(80.0, 50.0, 600.0);
-    let pose = cubecal::synthetic::look_at(
+    let pose = cubecal::render::correspondences::look_at(
         &eye,
         &Vector3::new(80.0, 50.0, 0.0),
         &Vector3::new(0.0, -1.0, 0.0),

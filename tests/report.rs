@@ -12,9 +12,9 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use cubecal::calib::init::InitMethod;
+use cubecal::calib::observations::{RawObservations, RawPoint, RawView};
 use cubecal::calib::report::{CalibrationReport, DistortionReport, ViewReport};
 use cubecal::camera::{Camera, DistortionModel, Pose};
-use cubecal::observations::{RawObservations, RawPoint, RawView};
 use cubecal::report::analysis::{self, CoverageGrid};
 use cubecal::report::plots::{
     self, CoverageFigure, HistogramFigure, PointKind, ResidualFigure, ViewRmsFigure,

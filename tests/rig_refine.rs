@@ -10,9 +10,9 @@
 use cubecal::calib::{
     self, CalibError, RigCalibration, RigPoint, RigRefineOptions, RigView, SolveOptions,
 };
-use cubecal::capture::synthetic::render;
 use cubecal::detect::score::EvalSet;
 use cubecal::detect::{CornerFinder, detect};
+use cubecal::render::render;
 use cubecal::rig::Rig;
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
@@ -80,7 +80,7 @@ fn detect_views(built: &Rig, labels: &Rig, n: usize) -> (Vec<RigView>, [u32; 2])
                     eprintln!("view{k:02}: rejected: {}", r.reason);
                 }
             }
-            RigView::from_detection(&det, &format!("view{k:02}"))
+            det.to_rig_view(&format!("view{k:02}"))
         })
         .collect();
     (views, camera.image_size)
@@ -353,7 +353,7 @@ fn a_board_mounted_centimetres_away_is_named() {
 /// used without refinement on another session, calibrates as well as the exact rig.
 #[test]
 fn rig_survey_writes_a_rig_that_calibrates_without_refinement() {
-    use cubecal::capture::synthetic::random_poses;
+    use cubecal::render::random_poses;
     let nominal = nominal_rig();
     let built = built_from(&nominal, &PERTURBATIONS);
     let set = EvalSet::Realistic;
@@ -403,7 +403,7 @@ fn rig_survey_writes_a_rig_that_calibrates_without_refinement() {
         .map(|(k, pose)| {
             let img = render(&built, &camera, pose, &settings, 100 + k as u64).unwrap();
             let det = detect(&mut finder, &img, &nominal).unwrap();
-            RigView::from_detection(&det, &format!("eval{k:02}"))
+            det.to_rig_view(&format!("eval{k:02}"))
         })
         .filter(|v| !v.points.is_empty())
         .collect();

@@ -9,8 +9,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use cubecal::capture::synthetic::{AngleCell, TurntableScene, default_view};
+use cubecal::capture::synthetic::{AngleCell, TurntableScene};
 use cubecal::capture::{CaptureError, Frame, FrameSource, SourceInfo};
+use cubecal::render::default_view;
 use cubecal::rig::Rig;
 use cubecal::station::config::{StationConfig, set_key};
 use cubecal::station::hardware::{self, Hardware, Poses, plan_angles};
@@ -333,9 +334,8 @@ fn held_out_rms_of_focus_change(
     let mut changed = camera.clone();
     changed.params[idx::FX] *= scale;
     changed.params[idx::FY] *= scale;
-    let settings = cubecal::capture::synthetic::RenderSettings::default();
-    let truth =
-        cubecal::capture::synthetic::ground_truth(rig, &changed, cam_from_rig, &settings, 0);
+    let settings = cubecal::render::RenderSettings::default();
+    let truth = cubecal::render::ground_truth(rig, &changed, cam_from_rig, &settings, 0);
     let eye = cam_from_rig.centre();
     let points = truth
         .visible()
@@ -370,7 +370,7 @@ fn verdict_fails_when_the_focus_changed_before_the_held_out_pose() {
     let camera = cfg.synthetic.camera();
     let base = default_view(&rig, &camera);
     let angles = plan_angles(12, 60.0);
-    let held_pose = cubecal::capture::synthetic::turned(&rig, &base, angles[11]);
+    let held_pose = cubecal::render::turned(&rig, &base, angles[11]);
     let most = cfg.qa.max_held_out_ratio * SMALL_FIT_RMS_CEILING_PX + cfg.qa.held_out_floor_px;
     let (scale, expected) = (1..=40)
         .map(|k| 1.0 + 0.0025 * f64::from(k))
@@ -747,7 +747,7 @@ fn photos_of_a_board_give_the_reference_focal_length() {
 
 #[test]
 fn a_folder_of_renders_gives_the_rendered_camera() {
-    use cubecal::capture::synthetic::{random_poses, render};
+    use cubecal::render::{random_poses, render};
     let cfg = with(REALISTIC, &[]);
     let rig = rig();
     let camera = cfg.synthetic.camera();

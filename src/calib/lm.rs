@@ -976,7 +976,7 @@ mod tests {
 
     #[test]
     fn pose_jacobian_matches_central_differences() {
-        let cam = crate::synthetic::reference_camera();
+        let cam = crate::render::correspondences::reference_camera();
         let pose = Pose::from_axis_angle(
             Vector3::new(0.3, -0.5, 0.2),
             Vector3::new(-40.0, 25.0, 600.0),

@@ -1,6 +1,7 @@
 //! The solvers: normalised DLT, RQ decomposition, planar homographies and Zhang's closed form
 //! ([`linear`]), initialisation of a multi-view problem ([`init`]), and Levenberg–Marquardt refinement
-//! with parameter uncertainty ([`solve()`]).
+//! with parameter uncertainty ([`solve()`]); the correspondence file format read by `cubecal solve`
+//! ([`observations`]).
 //!
 //! Hand-written rather than taken from a crate: the refinement needs the block (Schur complement)
 //! structure of a calibration problem, the exact OpenCV distortion model with analytic Jacobians, parameter
@@ -14,6 +15,7 @@ pub mod determined;
 pub mod init;
 pub mod linear;
 mod lm;
+pub mod observations;
 pub mod pose;
 pub mod report;
 pub mod rigrefine;

@@ -78,28 +78,6 @@ pub struct RigView {
 }
 
 impl RigView {
-    /// The labelled corners of a detection.
-    pub fn from_detection(det: &crate::detect::FrameDetection, name: &str) -> RigView {
-        RigView {
-            name: name.to_string(),
-            points: det
-                .faces
-                .iter()
-                .flat_map(|f| {
-                    f.corners.iter().map(move |c| RigPoint {
-                        corner: CornerId {
-                            face: f.face,
-                            row: c.row,
-                            col: c.col,
-                        },
-                        uv: c.uv,
-                        sigma_px: c.sigma_px.is_finite().then_some(c.sigma_px),
-                    })
-                })
-                .collect(),
-        }
-    }
-
     /// Recover the corner labels of an ordinary view made against `rig` (e.g. an observations file the
     /// station wrote): each point's `xyz` must be one of the rig's corners (within 1e-6 mm).
     pub fn from_view(view: &View, rig: &Rig) -> Result<RigView, CalibError> {
@@ -1362,7 +1340,7 @@ mod tests {
 
     #[test]
     fn face_and_pose_jacobians_match_central_differences() {
-        let cam = crate::synthetic::reference_camera().with_distortion(
+        let cam = crate::render::correspondences::reference_camera().with_distortion(
             crate::camera::DistortionModel::Brown5,
             &[-0.2, 0.05, 1e-3, -2e-3, 0.01],
         );

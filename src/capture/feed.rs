@@ -28,9 +28,10 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use super::convert::{PixelFormat, encode_gray};
-use super::synthetic::{AngleCell, SyntheticError, TurntableScene};
+use super::synthetic::{AngleCell, TurntableScene};
 use super::v4l2::{Negotiated, V4l2Output, enable_vivid_loop};
 use super::{CaptureError, FrameSource};
+use crate::render::SyntheticError;
 use crate::turntable::sim::StageView;
 
 /// Errors that end a feeder.

@@ -1,5 +1,5 @@
 //! Capture: the [`FrameSource`] trait the station sees cameras through, and its implementations —
-//! V4L2 (real cameras), replay of recorded sessions, and synthetic rendering (`synthetic`).
+//! V4L2 (real cameras), replay of recorded sessions, photos, and synthetic cameras (`synthetic`).
 //!
 //! The trait is shaped by what the station needs, not by what drivers offer: describe the source, grab
 //! one owned grayscale frame within a deadline, and flush frames queued before a turntable move.
@@ -8,7 +8,8 @@
 //! - [`v4l2`]: real cameras ([`v4l2::V4l2Source`]), device discovery, locked controls.
 //! - [`session`]: recorded sessions on disk and [`session::ReplaySource`].
 //! - [`convert`]: pixel formats and their conversion to gray.
-//! - `synthetic`: rendered frames of a rig.
+//! - [`synthetic`]: synthetic cameras grabbing from the renderer ([`crate::render`]); [`feed`]: the
+//!   synthetic camera in front of a simulated stage.
 //!
 //! Errors keep the device or file they concern and the OS error kind, because the actions differ: a
 //! [`CaptureError::Timeout`] may be retried, an [`CaptureError::Unplugged`] camera must be reconnected,

@@ -2,20 +2,16 @@
 //! line per pose on a terminal, one JSON object per line with `--json` (the last is the result).
 
 use std::io::{IsTerminal, Write};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
-use cubecal::rig::Rig;
-use cubecal::station::config::{StationConfig, set_key};
+use cubecal::station::setup::RunRequest;
 use cubecal::station::{self, Event, EventSink, RunResult, RunSpec};
 use cubecal::turntable::manual::Operator;
 
 use super::Output;
-
-/// The rig used when neither `--rig` nor `rig.path` names one (the bundled 200 mm cube).
-pub const DEFAULT_RIG: &str = include_str!("../../fixtures/rigs/cube_outside.toml");
 
 #[derive(Debug, clap::Args)]
 pub struct CalibrateArgs {
@@ -62,153 +58,24 @@ pub struct CalibrateArgs {
     pub set: Vec<String>,
 }
 
-impl CalibrateArgs {
-    /// The arguments of a run from `config` alone (plus `--set` overrides): what `serve` and the
-    /// turntable feeder pass to [`prepare`].
-    pub fn from_config(config: PathBuf, device: Option<PathBuf>, set: Vec<String>) -> Self {
-        CalibrateArgs {
-            config: Some(config),
-            device,
-            replay: None,
-            images: Vec::new(),
-            synthetic: false,
-            turntable: None,
-            rig: None,
-            store: None,
-            out: None,
-            poses: None,
-            sweep_deg: None,
-            device_id: None,
-            set,
+impl From<&CalibrateArgs> for RunRequest {
+    fn from(a: &CalibrateArgs) -> RunRequest {
+        RunRequest {
+            config: a.config.clone(),
+            device: a.device.clone(),
+            replay: a.replay.clone(),
+            images: a.images.clone(),
+            synthetic: a.synthetic,
+            turntable: a.turntable.clone(),
+            rig: a.rig.clone(),
+            store: a.store.clone(),
+            out: a.out.clone(),
+            poses: a.poses,
+            sweep_deg: a.sweep_deg,
+            device_id: a.device_id.clone(),
+            set: a.set.clone(),
         }
     }
-}
-
-/// Build the validated config: the file (or, for a replay without --config, the recorded one), then
-/// the flags. Returns the config and the rig's TOML text and path.
-pub fn build_config(
-    args: &CalibrateArgs,
-) -> anyhow::Result<(StationConfig, String, Option<PathBuf>)> {
-    let mut origin = "command line".to_string();
-    let mut recorded_rig: Option<String> = None;
-    let mut table = match (&args.config, &args.replay) {
-        (Some(path), _) => {
-            origin = path.display().to_string();
-            StationConfig::read_table(path)?
-        }
-        (None, Some(dir)) => {
-            let session = cubecal::capture::session::Session::open(dir)?;
-            let cfg = &session.manifest.header.config;
-            recorded_rig = cfg
-                .get("rig_toml")
-                .and_then(|v| v.as_str())
-                .map(str::to_string);
-            origin = format!("{} (recorded config)", dir.display());
-            match cfg.get("station") {
-                Some(v) => {
-                    let recorded: StationConfig =
-                        serde_json::from_value(v.clone()).with_context(|| {
-                            format!("{}: the recorded station config", dir.display())
-                        })?;
-                    toml::Table::try_from(&recorded).with_context(|| {
-                        format!("{}: the recorded station config", dir.display())
-                    })?
-                }
-                None => toml::Table::new(),
-            }
-        }
-        (None, None) => toml::Table::new(),
-    };
-    let mut set = |k: &str, v: &str| set_key(&mut table, k, v);
-    let quote = |p: &Path| toml::Value::String(p.display().to_string()).to_string();
-    if let Some(d) = &args.device {
-        set("camera.source", "\"device\"")?;
-        set("camera.device", &quote(d))?;
-    }
-    if let Some(r) = &args.replay {
-        set("camera.source", "\"replay\"")?;
-        set("camera.replay", &quote(r))?;
-        set("turntable.kind", "\"none\"")?;
-        set("output.out", "\"\"")?;
-    }
-    if !args.images.is_empty() {
-        set("camera.source", "\"images\"")?;
-        let list: Vec<String> = args.images.iter().map(|p| quote(p)).collect();
-        set("camera.images", &format!("[{}]", list.join(", ")))?;
-        set("turntable.kind", "\"none\"")?;
-        set("camera.frames_per_pose", "1")?;
-    }
-    if args.synthetic {
-        set("camera.source", "\"synthetic\"")?;
-    }
-    if let Some(t) = &args.turntable {
-        let (kind, port) = match t.split_once(':') {
-            Some((k, p)) => (k, Some(p)),
-            None => (t.as_str(), None),
-        };
-        set(
-            "turntable.kind",
-            &toml::Value::String(kind.into()).to_string(),
-        )?;
-        if let Some(p) = port {
-            set("turntable.port", &toml::Value::String(p.into()).to_string())?;
-        }
-    }
-    if let Some(r) = &args.rig {
-        set("rig.path", &quote(r))?;
-    }
-    if let Some(s) = &args.store {
-        set("output.store", &quote(s))?;
-    }
-    if let Some(o) = &args.out {
-        set("output.out", &quote(o))?;
-    }
-    if let Some(n) = args.poses {
-        set("plan.poses", &n.to_string())?;
-    }
-    if let Some(s) = args.sweep_deg {
-        set("plan.sweep_deg", &format!("{s:?}"))?;
-    }
-    if let Some(id) = &args.device_id {
-        set(
-            "camera.device_id",
-            &toml::Value::String(id.clone()).to_string(),
-        )?;
-    }
-    for kv in &args.set {
-        let (k, v) = kv
-            .split_once('=')
-            .with_context(|| format!("--set {kv}: expected KEY=VALUE"))?;
-        set(k.trim(), v.trim())?;
-    }
-    if args.replay.is_some() && args.out.is_none() {
-        // The recorded run's output folder is not reused.
-        if let Some(out) = table.get_mut("output").and_then(|o| o.as_table_mut()) {
-            out.remove("out");
-        }
-    }
-    let cfg = StationConfig::from_table(table, &origin)?;
-    let (rig_toml, rig_path) = match (&args.rig, &recorded_rig, &cfg.rig.path) {
-        (Some(p), _, _) => (read_rig(p)?, Some(p.clone())),
-        (None, Some(text), _) => (text.clone(), cfg.rig.path.clone()),
-        (None, None, Some(p)) => (read_rig(p)?, Some(p.clone())),
-        (None, None, None) => (DEFAULT_RIG.to_string(), None),
-    };
-    Ok((cfg, rig_toml, rig_path))
-}
-
-fn read_rig(p: &Path) -> anyhow::Result<String> {
-    std::fs::read_to_string(p).map_err(|source| {
-        anyhow::Error::new(cubecal::rig::RigError::Read {
-            path: p.display().to_string(),
-            source,
-        })
-    })
-}
-
-/// A default run directory: `cubecal-runs/<UTC time>`.
-fn default_run_dir() -> PathBuf {
-    PathBuf::from("cubecal-runs").join(cubecal::station::utc_stamp(std::time::SystemTime::now()))
 }
 
 /// Renders events for a person: a progress bar (on a terminal) and one line per pose.
@@ -304,56 +171,20 @@ impl EventSink for JsonLines {
     }
 }
 
-/// A validated run: config, rig (text, path, parsed) and run directory.
-pub struct Prepared {
-    pub cfg: StationConfig,
-    pub rig_toml: String,
-    pub rig_path: Option<PathBuf>,
-    pub rig: Rig,
-    pub run_dir: PathBuf,
-}
-
-/// Build the config, parse the rig (warnings logged) and choose the run directory: shared by
-/// `calibrate` and `serve`.
-pub fn prepare(args: &CalibrateArgs) -> anyhow::Result<Prepared> {
-    let (cfg, rig_toml, rig_path) = build_config(args)?;
-    let origin = rig_path
-        .as_ref()
-        .map(|p| p.display().to_string())
-        .unwrap_or_else(|| "the bundled rig".into());
-    let (rig, warnings) = Rig::from_toml_str(&rig_toml, &origin)?;
-    for w in &warnings {
-        tracing::warn!("{w}");
-    }
-    let run_dir = cfg
-        .output
-        .out
-        .clone()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or_else(default_run_dir);
-    Ok(Prepared {
-        cfg,
-        rig_toml,
-        rig_path,
-        rig,
-        run_dir,
-    })
-}
-
 pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
-    let Prepared {
+    let station::setup::Prepared {
         cfg,
         rig_toml,
         rig_path,
         rig,
         run_dir,
-    } = prepare(&args)?;
+    } = station::setup::prepare(&RunRequest::from(&args))?;
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         signal_hook::flag::register(sig, Arc::clone(&stop))
             .context("installing the signal handler")?;
     }
-    let operator: Option<Box<dyn Operator>> = Some(Box::new(super::turntable::TerminalOperator));
+    let operator: Option<Box<dyn Operator>> = Some(Box::new(super::operator::TerminalOperator));
     let hw = station::hardware::open(&cfg, &rig, operator)?;
     let spec = RunSpec {
         config: &cfg,
@@ -372,6 +203,7 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
         }
         r?
     };
+    super::report::write_for_run(&run_dir, &mut station::event::NullSink);
     if out.json {
         print_json(&result)?;
     } else {

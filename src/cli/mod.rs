@@ -23,6 +23,7 @@ macro_rules! outln {
 mod calibrate;
 mod capture;
 mod detect;
+mod operator;
 mod profile;
 mod render;
 mod report;
@@ -180,8 +181,8 @@ pub struct OutputError {
 /// the user's path is named, and the code is `exit::IO` (7), as the README documents. (The library's
 /// own `exit_code()` of these write errors still says 1; this takes precedence.)
 fn output_write_failure(cause: &(dyn std::error::Error + 'static)) -> bool {
-    use cubecal::capture::synthetic::SyntheticError;
     use cubecal::detect::overlay::OverlayError;
+    use cubecal::render::SyntheticError;
     use cubecal::rig::RigError;
     cause.downcast_ref::<OutputError>().is_some()
         || matches!(
@@ -214,7 +215,7 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
         if let Some(e) = cause.downcast_ref::<cubecal::calib::CalibError>() {
             return e.exit_code();
         }
-        if let Some(e) = cause.downcast_ref::<cubecal::observations::ObservationsError>() {
+        if let Some(e) = cause.downcast_ref::<cubecal::calib::observations::ObservationsError>() {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::rig::RigError>() {
@@ -223,7 +224,7 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
         if let Some(e) = cause.downcast_ref::<cubecal::capture::CaptureError>() {
             return e.exit_code();
         }
-        if let Some(e) = cause.downcast_ref::<cubecal::capture::synthetic::SyntheticError>() {
+        if let Some(e) = cause.downcast_ref::<cubecal::render::SyntheticError>() {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::detect::DetectError>() {
@@ -239,6 +240,9 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::capture::feed::FeedError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::station::setup::SetupError>() {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::station::config::ConfigError>() {

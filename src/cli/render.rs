@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
 use cubecal::camera::{Camera, DistortionModel};
-use cubecal::capture::synthetic::{
+use cubecal::render::{
     Palette, RenderSettings, SyntheticError, default_view, ground_truth, random_poses, render,
     turntable_poses, write_frame,
 };

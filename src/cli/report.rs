@@ -3,6 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
+use cubecal::station::{self, EventSink};
+
 use cubecal::report::profile::ProfileData;
 
 use super::Output;
@@ -57,5 +59,16 @@ fn print_written(path: &std::path::Path, out: Output) {
         println!("{}", serde_json::json!({ "report": path }));
     } else {
         println!("wrote {}", path.display());
+    }
+}
+
+/// The run's `report.html`, drawn once the station's run has returned (the station emits its results;
+/// front ends decide what to render). The watchdog keeps being pinged through `sink` meanwhile. The
+/// report is for people: a run whose report cannot be drawn is still a run, so a failure is logged.
+pub(super) fn write_for_run(run_dir: &Path, sink: &mut dyn EventSink) {
+    if let Err(e) = station::notify::alive_during(sink, station::SOLVE_LIMIT, || {
+        cubecal::report::write_run_report(run_dir)
+    }) {
+        tracing::warn!(error = %e, "could not write the run's report.html");
     }
 }

@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use clap::Subcommand;
-use cubecal::calib::{self, RigCalibration, RigRefineOptions, RigView};
+use cubecal::calib::{self, RigCalibration, RigRefineOptions};
 use cubecal::camera::DistortionModel;
 use cubecal::detect::{self, CornerFinder};
 use cubecal::rig::survey::{self, RigSurvey};
@@ -123,7 +123,7 @@ fn run_survey(args: SurveyArgs, out: Output) -> anyhow::Result<u8> {
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| path.display().to_string());
-        let view = RigView::from_detection(&det, &name);
+        let view = det.to_rig_view(&name);
         tracing::info!(frame = %name, corners = view.points.len(), "detected");
         if !view.points.is_empty() {
             views.push(view);

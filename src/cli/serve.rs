@@ -23,7 +23,7 @@ use cubecal::station::{self, Event, EventSink, RunSpec};
 use signal_hook::consts::{SIGINT, SIGTERM};
 
 use super::Output;
-use super::calibrate::CalibrateArgs;
+use cubecal::station::setup::{self, RunRequest};
 
 #[derive(Debug, clap::Args)]
 pub struct ServeArgs {
@@ -87,18 +87,18 @@ pub fn run(args: ServeArgs, out: Output) -> anyhow::Result<u8> {
 }
 
 fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow::Result<u8> {
-    let calibrate = CalibrateArgs::from_config(
+    let request = RunRequest::from_config(
         args.config.clone(),
         Some(args.device.clone()),
         args.set.clone(),
     );
-    let super::calibrate::Prepared {
+    let setup::Prepared {
         cfg,
         rig_toml,
         rig_path,
         rig,
         run_dir,
-    } = super::calibrate::prepare(&calibrate)?;
+    } = setup::prepare(&request)?;
     // No operator: a service cannot answer a manual turntable's prompts (the station says so).
     let hw = station::hardware::open(&cfg, &rig, None)?;
     if stop.load(Ordering::SeqCst) {
@@ -112,6 +112,7 @@ fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow:
         run_dir: &run_dir,
     };
     let result = station::run(&spec, hw, sink, stop)?;
+    super::report::write_for_run(&run_dir, sink);
     let mut o = std::io::stdout().lock();
     if sink.json {
         let _ = writeln!(o, "{}", serde_json::to_string(&result)?);

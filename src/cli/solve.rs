@@ -5,11 +5,11 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::ValueEnum;
 
+use cubecal::calib::observations::Observations;
 use cubecal::calib::report::CalibrationReport;
 use cubecal::calib::{self, Fix, Loss, SolveOptions, Termination, UndeterminedParam};
 use cubecal::camera::DistortionModel;
 use cubecal::exit;
-use cubecal::observations::Observations;
 
 use super::{Output, UsageError};
 

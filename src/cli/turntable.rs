@@ -2,8 +2,6 @@
 //! protocol simulator on a pseudo-terminal. Parse the arguments, validate them into driver configs,
 //! run, render (human text or `--json`). Port-access hints (dialout group, udev rule) live here.
 
-use std::io::{BufRead, Write};
-
 use serialport::SerialPort;
 use std::time::{Duration, Instant};
 
@@ -11,7 +9,9 @@ use anyhow::Context;
 use clap::{Args, Subcommand, ValueEnum};
 use cubecal::exit;
 use cubecal::turntable::grbl::{Axis, GrblConfig, GrblTurntable};
-use cubecal::turntable::manual::{FixedRig, MANUAL_RESOLUTION, ManualTurntable, Operator};
+use cubecal::turntable::manual::{FixedRig, MANUAL_RESOLUTION, ManualTurntable};
+
+use super::operator::TerminalOperator;
 use cubecal::turntable::serial::open_port;
 use cubecal::turntable::sim::{self, Fault, GrblSim, SimConfig, ZaberSim};
 use cubecal::turntable::zaber::{X_RSW60A_MICROSTEPS_PER_DEGREE, ZaberConfig, ZaberTurntable};
@@ -19,7 +19,8 @@ use cubecal::turntable::{DEFAULT_RETRIES, Degrees, Turntable, TurntableError};
 
 use cubecal::capture::convert::PixelFormat;
 use cubecal::capture::feed::{FeedConfig, Feeder};
-use cubecal::capture::synthetic::{AngleCell, TurntableScene, default_view};
+use cubecal::capture::synthetic::{AngleCell, TurntableScene};
+use cubecal::render::default_view;
 use cubecal::turntable::sim::StageView;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -316,26 +317,6 @@ impl Conn {
     }
 }
 
-/// The operator of a manual turntable, on the terminal: instructions on stderr, Enter on stdin.
-#[derive(Debug)]
-pub(super) struct TerminalOperator;
-
-impl Operator for TerminalOperator {
-    #[allow(clippy::print_stderr)]
-    fn confirm(&mut self, instruction: &str) -> std::io::Result<bool> {
-        eprint!("Please {instruction}, then press Enter (or type n and Enter to abort): ");
-        std::io::stderr().flush()?;
-        let mut line = String::new();
-        if std::io::stdin().lock().read_line(&mut line)? == 0 {
-            return Err(std::io::Error::new(
-                std::io::ErrorKind::UnexpectedEof,
-                "stdin closed",
-            ));
-        }
-        Ok(!matches!(line.trim(), "n" | "N" | "no"))
-    }
-}
-
 #[allow(clippy::print_stdout)]
 fn simulate(args: SimulateArgs, out: Output) -> anyhow::Result<()> {
     let d = &args.drive;
@@ -475,11 +456,12 @@ fn feed_setup(args: &FeedArgs, output: &std::path::Path, d: &DriveArgs) -> anyho
         .ok_or_else(|| UsageError("--feed needs --station-config".into()))?;
     // The feeder is this config's synthetic camera: its camera.device (the capture node the station
     // reads) is not needed here.
-    let prepared = super::calibrate::prepare(&super::calibrate::CalibrateArgs::from_config(
-        station_config.clone(),
-        None,
-        vec!["camera.source=\"synthetic\"".into()],
-    ))?;
+    let prepared =
+        cubecal::station::setup::prepare(&cubecal::station::setup::RunRequest::from_config(
+            station_config.clone(),
+            None,
+            vec!["camera.source=\"synthetic\"".into()],
+        ))?;
     let cfg = &prepared.cfg;
     let fourcc = cfg.camera.fourcc.as_deref().ok_or_else(|| {
         UsageError(format!(

@@ -2,7 +2,7 @@
 //! own image model: how precisely *any* unbiased estimator could locate a corner, given the pixels it
 //! uses and the pixel noise of the render.
 //!
-//! A render ([`crate::capture::synthetic::render`]) is a noise-free image `μ(θ)` — radiance
+//! A render ([`crate::render::render`]) is a noise-free image `μ(θ)` — radiance
 //! ([`render_radiance`]), blur, vignetting, gamma, scaled to grey levels ([`expected_image`]) — plus
 //! independent Gaussian noise of σ grey levels and rounding to 8 bits (uniform, variance 1/12,
 //! counted as noise: [`noise_variance`]). For parameters `θ` of the image model, the Fisher
@@ -56,9 +56,7 @@
 use nalgebra::{DMatrix, DVector, Matrix2, Rotation3, Vector2, Vector3};
 
 use crate::camera::{Camera, Pose, idx};
-use crate::capture::synthetic::{
-    RenderSettings, SyntheticError, gaussian_blur, render_radiance, response,
-};
+use crate::render::{RenderSettings, SyntheticError, gaussian_blur, render_radiance, response};
 use crate::rig::{BoardRegion, Rig};
 
 /// A rectangle of the frame: columns `x0..x0 + width`, rows `y0..y0 + height`.
@@ -126,8 +124,8 @@ pub fn noise_variance(settings: &RenderSettings) -> f64 {
 }
 
 /// The expected grey levels (before noise and rounding) of the pixels of `crop` in the frame
-/// [`crate::capture::synthetic::render`] makes of `rig` seen by `camera` from `cam_from_rig`: row-major
-/// over the crop. The same arithmetic as [`crate::capture::synthetic::finish`], whose output is
+/// [`crate::render::render`] makes of `rig` seen by `camera` from `cam_from_rig`: row-major
+/// over the crop. The same arithmetic as [`crate::render::finish`], whose output is
 /// this rounded when the noise is 0.
 pub fn expected_image(
     rig: &Rig,
@@ -550,8 +548,8 @@ pub fn corner_bounds(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use crate::capture::synthetic::{finish, render_radiance};
     use crate::detect::score::EvalSet;
+    use crate::render::{finish, render_radiance};
 
     /// The crop's expected image is the frame's, and rounds to the noise-free render.
     #[test]

@@ -44,8 +44,8 @@ use nalgebra::Vector2;
 
 use super::complete::{like_grid, median};
 use super::dense::Dense;
+use super::face::MIN_COLOUR_CONTRAST;
 use super::fold::FoldSides;
-use super::identity::MIN_COLOUR_CONTRAST;
 use super::refine::{self, RefineFailure};
 
 /// fit window unclipped) for the grid's extent to count as proven.

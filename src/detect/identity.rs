@@ -24,12 +24,10 @@ use image::GrayImage;
 use nalgebra::{Matrix3x4, Vector2, Vector3};
 
 use super::dense::Dense;
-use super::label::{FaceDetection, LabelledCorner, Rejection};
+use super::face::{FaceDetection, LabelledCorner, MIN_COLOUR_CONTRAST, Rejection};
 use crate::calib::linear::{COPLANAR_TOLERANCE, dlt, relative_thickness};
 use crate::rig::{Rig, SquareColour};
 
-/// Mean white-minus-black square intensity (grey levels) needed for an orientation to count as decided.
-pub const MIN_COLOUR_CONTRAST: f64 = 10.0;
 /// With several faces, the chosen labelling's DLT RMS must be this many times smaller than any
 /// alternative's.
 pub const GEOMETRY_MARGIN: f64 = 3.0;

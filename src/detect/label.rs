@@ -17,9 +17,6 @@
 //! labelled by their own evidence: [`super::place`] tries to place them through the rig geometry of
 //! the complete faces found here, and reports the ones it cannot place as rejected.
 
-use image::GrayImage;
-use nalgebra::{Vector2, Vector3};
-
 use super::complete::Completed;
 use super::dense::Dense;
 use super::extent::check_extent;
@@ -28,70 +25,11 @@ use super::grid::MIN_LINES;
 use super::identity::{self, Whole};
 use super::place::{Partial, place, place_by_edges};
 use crate::rig::Rig;
+use image::GrayImage;
 
 pub use super::extent::{CONTINUED_CONTRAST, END_UNIFORMITY, MIN_EMPTY_BEYOND};
-pub use super::identity::{GEOMETRY_MARGIN, MIN_COLOUR_CONTRAST};
-
-/// One labelled corner.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct LabelledCorner {
-    pub row: usize,
-    pub col: usize,
-    pub xyz: Vector3<f64>,
-    pub uv: Vector2<f64>,
-    /// Estimated standard deviation of each coordinate of `uv` (px), from the refinement fit.
-    pub sigma_px: f64,
-}
-
-/// A face found in the frame.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FaceDetection {
-    pub face: usize,
-    pub corners: Vec<LabelledCorner>,
-    /// White-minus-black mean intensity that decided the orientation (grey levels).
-    pub colour_contrast: f64,
-}
-
-/// Why a grid (or the frame) was not used.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Rejection {
-    pub reason: String,
-    /// The rejected grid's corners in its own row/column indices (empty for a rejection of the whole
-    /// frame, such as "no checkerboard grid found").
-    pub corners: Vec<GridCorner>,
-}
-
-/// A corner of a rejected grid: its index in the grid (not a face's) and its image position.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct GridCorner {
-    pub row: usize,
-    pub col: usize,
-    pub uv: Vector2<f64>,
-}
-
-impl Rejection {
-    /// A rejection of the frame as a whole (no grid to show).
-    pub fn frame(reason: String) -> Rejection {
-        Rejection {
-            reason,
-            corners: Vec::new(),
-        }
-    }
-}
-
-impl Dense {
-    /// The grid's corners for a rejection.
-    pub(super) fn grid_corners(&self) -> Vec<GridCorner> {
-        (0..self.rows)
-            .flat_map(|r| (0..self.cols).map(move |c| (r, c)))
-            .map(|(row, col)| GridCorner {
-                row,
-                col,
-                uv: self.at(row, col),
-            })
-            .collect()
-    }
-}
+pub use super::face::{FaceDetection, GridCorner, LabelledCorner, MIN_COLOUR_CONTRAST, Rejection};
+pub use super::identity::GEOMETRY_MARGIN;
 
 /// Label the grids of one frame against the rig.
 pub fn label(

@@ -23,12 +23,16 @@
 use image::GrayImage;
 use nalgebra::Vector2;
 
+use crate::calib::rigrefine::{RigPoint, RigView};
+use crate::rig::CornerId;
+
 pub use front::CornerFinder;
 
 pub mod complete;
 pub mod crlb;
 mod dense;
 mod extent;
+pub mod face;
 pub mod fold;
 pub mod front;
 pub mod grid;
@@ -102,6 +106,29 @@ impl FrameDetection {
                 .map(|c| crate::calib::Correspondence {
                     xyz: c.xyz,
                     uv: c.uv,
+                })
+                .collect(),
+        }
+    }
+
+    /// The labelled corners with their rig labels, for refining the rig itself
+    /// ([`crate::calib::rigrefine`]).
+    pub fn to_rig_view(&self, name: &str) -> RigView {
+        RigView {
+            name: name.to_string(),
+            points: self
+                .faces
+                .iter()
+                .flat_map(|f| {
+                    f.corners.iter().map(move |c| RigPoint {
+                        corner: CornerId {
+                            face: f.face,
+                            row: c.row,
+                            col: c.col,
+                        },
+                        uv: c.uv,
+                        sigma_px: c.sigma_px.is_finite().then_some(c.sigma_px),
+                    })
                 })
                 .collect(),
         }

@@ -52,11 +52,9 @@ use nalgebra::{Matrix3x4, Vector2, Vector3};
 use super::complete::{Completed, median};
 use super::dense::Dense;
 use super::extent::{MIN_EMPTY_BEYOND, Side, look_beyond};
+use super::face::{self, FaceDetection, LabelledCorner, MIN_COLOUR_CONTRAST, Rejection};
 use super::fold::FoldSides;
-use super::identity::{
-    ColourSums, MIN_COLOUR_CONTRAST, dlt_fit, mean_square_intensity, repeated, reprojection_rms,
-};
-use super::label::{self, FaceDetection, LabelledCorner, Rejection};
+use super::identity::{ColourSums, dlt_fit, mean_square_intensity, repeated, reprojection_rms};
 use crate::rig::{Face, FaceSide, Rig};
 
 /// The best placement's geometric RMS must be this many times smaller than any other's.
@@ -109,10 +107,10 @@ impl Partial {
         }
     }
 
-    pub(super) fn grid_corners(&self) -> Vec<label::GridCorner> {
+    pub(super) fn grid_corners(&self) -> Vec<face::GridCorner> {
         self.corners
             .iter()
-            .map(|g| label::GridCorner {
+            .map(|g| face::GridCorner {
                 row: g.r,
                 col: g.c,
                 uv: g.uv,
@@ -244,7 +242,7 @@ pub(super) fn place(
                 corners: f
                     .corners
                     .iter()
-                    .map(|c| label::GridCorner {
+                    .map(|c| face::GridCorner {
                         row: c.row,
                         col: c.col,
                         uv: c.uv,

@@ -10,7 +10,7 @@ use nalgebra::{Vector2, Vector3};
 
 use super::FrameDetection;
 use crate::camera::{Camera, DistortionModel, Pose};
-use crate::capture::synthetic::{GroundTruth, Palette, RenderSettings, random_poses};
+use crate::render::{GroundTruth, Palette, RenderSettings, random_poses};
 use crate::rig::Rig;
 
 /// The two image sets the detector is measured on (issue 4).

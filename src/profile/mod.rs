@@ -32,7 +32,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::calib::report::CalibrationReport;
 use crate::capture::v4l2::{ControlSetting, DeviceInfo, Negotiated};
-use crate::station::Verdict;
+use crate::run::Verdict;
 
 pub mod export;
 pub mod store;

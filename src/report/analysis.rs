@@ -7,9 +7,9 @@ use std::str::FromStr;
 
 use nalgebra::{DMatrix, Matrix3, Rotation3, SMatrix, Vector2, Vector3};
 
+use crate::calib::observations::RawObservations;
 use crate::calib::report::CalibrationReport;
 use crate::camera::{Camera, CameraError, DistortionModel, N_INTRINSIC, PARAM_NAMES, Pose, idx};
-use crate::observations::RawObservations;
 
 use super::run::HeldOutPose;
 

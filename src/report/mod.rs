@@ -412,7 +412,7 @@ pub fn lens_plots(
 }
 
 fn thumbnails(data: &RunData) -> Result<Vec<Thumb>, ReportError> {
-    let obs_by_name: std::collections::HashMap<&str, &crate::observations::RawView> = data
+    let obs_by_name: std::collections::HashMap<&str, &crate::calib::observations::RawView> = data
         .observations
         .views
         .iter()
@@ -575,7 +575,7 @@ fn banner(pass: bool) -> String {
 }
 
 /// The verdict section: each check with its value, threshold, result and hint.
-fn verdict_table(verdict: &crate::station::Verdict) -> String {
+fn verdict_table(verdict: &crate::run::Verdict) -> String {
     let mut h = String::from(
         "<h2>Verdict</h2>\n<table><tr><th>check</th><th>value</th><th>threshold</th>\
          <th>result</th><th>what to do</th></tr>\n",

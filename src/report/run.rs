@@ -14,11 +14,11 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::calib::observations::RawObservations;
 use crate::calib::report::CalibrationReport;
 use crate::capture::session::Manifest;
-use crate::observations::RawObservations;
 use crate::rig::Rig;
-use crate::station::Verdict;
+use crate::run::Verdict;
 
 use super::ReportError;
 
@@ -75,10 +75,7 @@ pub struct RunData {
     pub manifest: Option<Manifest>,
 }
 
-pub const RESULT: &str = "result.json";
-pub const OBSERVATIONS: &str = "observations.json";
-pub const RIG: &str = "rig.toml";
-pub const SESSION: &str = "session";
+pub use crate::run::{OBSERVATIONS, RESULT, RIG, SESSION};
 
 fn read(path: &Path) -> Result<Vec<u8>, ReportError> {
     std::fs::read(path).map_err(|source| ReportError::Read {

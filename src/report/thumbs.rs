@@ -15,9 +15,9 @@ use image::{GrayImage, RgbImage};
 use nalgebra::{Vector2, Vector3};
 use plotters::prelude::*;
 
+use crate::calib::observations::RawView;
 use crate::detect::label::{FaceDetection, LabelledCorner};
 use crate::detect::{CornerFinder, FrameDetection, overlay};
-use crate::observations::RawView;
 use crate::rig::Rig;
 
 use super::plots::{PlotError, face_rgb};

@@ -1,5 +1,5 @@
 //! Surveyed rig files: the as-built rig measured by `cubecal rig survey` (see
-//! [`crate::calib::solve_rig`]), written as an ordinary rig TOML that any cubecal command loads.
+//! the calibration solver's `solve_rig`), written as an ordinary rig TOML that any cubecal command loads.
 //!
 //! The faces carry their measured poses (`origin`, `col_dir`, `row_dir`); an informational
 //! `[faces.survey]` table per face records the deviation from the nominal file and its σ, and a top-level

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::calib::{Fix, Loss, SolveOptions};
 use crate::camera::{Camera, DistortionModel};
-use crate::capture::synthetic::{Palette, RenderSettings};
+use crate::render::{Palette, RenderSettings};
 
 /// A configuration problem, naming the key (`qa.max_rms_px`) or the file.
 #[derive(Debug, thiserror::Error)]

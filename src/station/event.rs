@@ -4,7 +4,7 @@
 
 use serde::Serialize;
 
-use super::verdict::Verdict;
+use crate::run::Verdict;
 
 /// Something that happened during a run. Serialised with a `"event"` tag (snake_case names).
 #[derive(Debug, Clone, PartialEq, Serialize)]

@@ -9,13 +9,12 @@ use super::StationError;
 use super::config::{SourceKind, StationConfig, TurntableKind};
 use crate::capture::images::ImageFiles;
 use crate::capture::session::{ReplaySource, Session};
-use crate::capture::synthetic::{
-    AngleCell, SyntheticSource, TurntableScene, default_view, random_poses,
-};
+use crate::capture::synthetic::{AngleCell, SyntheticSource, TurntableScene};
 use crate::capture::v4l2::{
     ControlSetting, DeviceInfo, LockSettings, Negotiated, V4l2Config, V4l2Source,
 };
 use crate::capture::{FrameSource, convert::PixelFormat};
+use crate::render::{default_view, random_poses};
 use crate::rig::Rig;
 use crate::turntable::Turntable;
 use crate::turntable::grbl::{Axis, GrblConfig, GrblTurntable};

@@ -16,10 +16,10 @@ use nalgebra::Vector2;
 
 use super::config::StationConfig;
 use super::coverage::Coverage;
-use super::verdict::{Check, Verdict};
 use super::{HeldOut, ViewRecord};
 use crate::calib::{CalibError, Calibration, View};
 use crate::camera::idx;
+use crate::run::{Check, Verdict};
 
 /// What the verdict is made from.
 #[derive(Debug)]

@@ -30,7 +30,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 pub mod config;
 pub mod coverage;
@@ -38,12 +38,12 @@ pub mod event;
 pub mod hardware;
 pub mod judge;
 pub mod notify;
+pub mod setup;
 pub mod sharpness;
-pub mod verdict;
 
+pub use crate::run::{Check, HeldOut, RunResult, Verdict, ViewRecord};
 pub use config::StationConfig;
 pub use event::{Event, EventSink};
-pub use verdict::{Check, Verdict};
 
 use crate::calib::report::CalibrationReport;
 use crate::calib::{Correspondence, View};
@@ -70,7 +70,7 @@ pub enum StationError {
     #[error(transparent)]
     Session(#[from] SessionError),
     #[error(transparent)]
-    Synthetic(#[from] crate::capture::synthetic::SyntheticError),
+    Synthetic(#[from] crate::render::SyntheticError),
     #[error("detector: {0}")]
     Detect(String),
     #[error("a manual turntable needs an operator to answer its prompts (run interactively)")]
@@ -120,68 +120,9 @@ impl StationError {
     }
 }
 
-/// Longest a solve or the report may take before the station stops pinging the watchdog for it.
-const SOLVE_LIMIT: Duration = Duration::from_secs(600);
-
-/// Why a view was accepted or not (result.json `views`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ViewRecord {
-    pub name: String,
-    /// Session frame file the view was detected in.
-    pub frame: Option<String>,
-    pub angle_deg: Option<f64>,
-    pub accepted: bool,
-    pub reason: Option<String>,
-    pub faces: usize,
-    pub corners: usize,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub blur_px: Option<f64>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub motion: Option<f64>,
-}
-
-/// A held-out view checked against the fit.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct HeldOut {
-    pub name: String,
-    pub rms_px: f64,
-    pub max_px: f64,
-    pub rotation: [[f64; 3]; 3],
-    pub translation: [f64; 3],
-}
-
-/// The result of a run: what `--json` prints last and `RUN_DIR/result.json` holds.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RunResult {
-    pub verdict: Verdict,
-    /// The calibration, when the solver produced one (also for a failing verdict).
-    pub calibration: Option<CalibrationReport>,
-    pub held_out: Vec<HeldOut>,
-    pub views: Vec<ViewRecord>,
-    /// Where the profile went (null when none was written).
-    pub profile: Option<PathBuf>,
-    pub run_dir: PathBuf,
-    pub device: SourceInfo,
-    /// What the station decided beyond the config (e.g. "k3 fixed: not determined by the data").
-    #[serde(default)]
-    pub notes: Vec<String>,
-    /// The solver's error when it could not calibrate.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub solve_error: Option<String>,
-}
-
-impl RunResult {
-    /// The process exit code of this result: 0 pass, 5 no calibration, 6 rejected by QA.
-    pub fn exit_code(&self) -> u8 {
-        if self.verdict.pass {
-            crate::exit::SUCCESS
-        } else if self.calibration.is_none() && self.solve_error.is_some() {
-            crate::exit::CALIBRATION_FAILED
-        } else {
-            crate::exit::QA_REJECTED
-        }
-    }
-}
+/// Longest a solve (or a front end's work after the run, such as its report) may take before the
+/// watchdog pings stop for it.
+pub const SOLVE_LIMIT: Duration = Duration::from_secs(600);
 
 /// Inputs of a run besides the hardware.
 #[derive(Debug)]
@@ -227,9 +168,9 @@ pub fn run(
 ) -> Result<RunResult, StationError> {
     let cfg = spec.config;
     let run_dir = spec.run_dir;
-    if run_dir.join("result.json").exists()
+    if run_dir.join(crate::run::RESULT).exists()
         || run_dir
-            .join("session")
+            .join(crate::run::SESSION)
             .join(crate::capture::session::MANIFEST)
             .exists()
     {
@@ -244,12 +185,12 @@ pub fn run(
         path: run_dir.to_path_buf(),
         source,
     })?;
-    write_file(&run_dir.join("rig.toml"), spec.rig_toml.as_bytes())?;
+    write_file(&run_dir.join(crate::run::RIG), spec.rig_toml.as_bytes())?;
     let mut info = hw.source.describe();
     if let Some(id) = &hw.identity {
         info.identity = id.clone();
     }
-    let session_dir = run_dir.join("session");
+    let session_dir = run_dir.join(crate::run::SESSION);
     let header = SessionHeader {
         source: info.clone(),
         device: hw.device.clone(),
@@ -317,16 +258,10 @@ pub fn run(
         let path = write_profile(spec, &hw, &mut result, calibration)?;
         result.profile = Some(path);
     }
-    write_json(&run_dir.join("result.json"), &result)?;
+    write_json(&run_dir.join(crate::run::RESULT), &result)?;
     sink.event(&Event::Verdict {
         verdict: result.verdict.clone(),
     });
-    // The report is for people: a run whose report cannot be drawn is still a run.
-    if let Err(e) = notify::alive_during(sink, SOLVE_LIMIT, || {
-        crate::report::write_run_report(run_dir)
-    }) {
-        tracing::warn!(error = %e, "could not write the run's report.html");
-    }
     Ok(result)
 }
 
@@ -363,7 +298,7 @@ fn capture_poses(
             return Err(StationError::Interrupted {
                 pose: index,
                 total,
-                session: spec.run_dir.join("session"),
+                session: spec.run_dir.join(crate::run::SESSION),
             });
         }
         let planned = match &hw.poses {
@@ -637,29 +572,31 @@ fn solve_and_judge(
     let mut held: Vec<View> = accepted[n_fit..].iter().map(|a| a.0.clone()).collect();
     // observations.json: the accepted views with faces, frames and held-out marks.
     let write_observations = |accepted: &[(View, Vec<String>, Option<String>)]| {
-        let raw = crate::observations::RawObservations {
+        let raw = crate::calib::observations::RawObservations {
             image_size,
             views: accepted
                 .iter()
                 .enumerate()
-                .map(|(i, (v, faces, frame))| crate::observations::RawView {
-                    name: Some(v.name.clone()),
-                    points: v
-                        .points
-                        .iter()
-                        .zip(faces)
-                        .map(|(c, f)| crate::observations::RawPoint {
-                            xyz: c.xyz.into(),
-                            uv: c.uv.into(),
-                            face: Some(f.clone()),
-                        })
-                        .collect(),
-                    frame: frame.clone(),
-                    held_out: i >= n_fit,
-                })
+                .map(
+                    |(i, (v, faces, frame))| crate::calib::observations::RawView {
+                        name: Some(v.name.clone()),
+                        points: v
+                            .points
+                            .iter()
+                            .zip(faces)
+                            .map(|(c, f)| crate::calib::observations::RawPoint {
+                                xyz: c.xyz.into(),
+                                uv: c.uv.into(),
+                                face: Some(f.clone()),
+                            })
+                            .collect(),
+                        frame: frame.clone(),
+                        held_out: i >= n_fit,
+                    },
+                )
                 .collect(),
         };
-        write_json(&spec.run_dir.join("observations.json"), &raw)
+        write_json(&spec.run_dir.join(crate::run::OBSERVATIONS), &raw)
     };
     write_observations(&accepted)?;
     let views: Vec<ViewRecord> = poses.iter().map(|p| p.record.clone()).collect();
@@ -723,7 +660,10 @@ fn solve_and_judge(
         .filter_map(|p| {
             Some(crate::detect::undistorted::Recorded {
                 name: &p.view.as_ref()?.0.name,
-                frame: spec.run_dir.join("session").join(p.record.frame.as_ref()?),
+                frame: spec
+                    .run_dir
+                    .join(crate::run::SESSION)
+                    .join(p.record.frame.as_ref()?),
                 detection: p.detection.as_ref()?,
             })
         })
@@ -806,7 +746,7 @@ fn write_profile(
     };
     let manifest = spec
         .run_dir
-        .join("session")
+        .join(crate::run::SESSION)
         .join(crate::capture::session::MANIFEST);
     let manifest_sha256 = std::fs::read(&manifest)
         .map(|b| hex(&b))
@@ -839,7 +779,7 @@ fn write_profile(
             sha256: hex(spec.rig_toml.as_bytes()),
         },
         session: Some(SessionRef {
-            path: spec.run_dir.join("session"),
+            path: spec.run_dir.join(crate::run::SESSION),
             manifest_sha256,
         }),
         software_version: env!("CARGO_PKG_VERSION").to_string(),

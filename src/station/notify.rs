@@ -36,7 +36,7 @@ use std::time::{Duration, Instant};
 use sd_notify::NotifyState;
 
 use super::event::{Event, EventSink};
-use super::verdict::Verdict;
+use crate::run::Verdict;
 
 /// How often [`alive_during`] emits [`Event::Alive`] while its step runs.
 pub const ALIVE_EVERY: Duration = Duration::from_secs(1);
@@ -364,7 +364,7 @@ fn one_line(text: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::station::verdict::Check;
+    use crate::run::Check;
 
     #[test]
     fn pacer_pings_first_event_then_at_quarter_interval() {

@@ -15,7 +15,7 @@
 //! A GRBL simulator can also be *seen* ([`grbl_pair_seen`]): it publishes its position to a
 //! [`StageView`] at every tick, and a move (or homing cycle) is reported finished only once the
 //! view says a picture of the table at its final position is on screen. A real camera sees the table
-//! the moment it stops; a feeder that renders the scene ([`crate::capture::feed`]) needs time, and
+//! the moment it stops; a feeder that renders the scene (the capture module's `feed`) needs time, and
 //! without this gate the station would grab the previous pose's picture after "settled".
 
 use std::fmt::Write as _;

@@ -19,12 +19,12 @@
 use std::path::{Path, PathBuf};
 
 use cubecal::camera::{Camera, DistortionModel, Pose};
-use cubecal::capture::synthetic::{
+use cubecal::render::correspondences::look_at;
+use cubecal::render::{
     GroundTruth, Palette, RenderSettings, default_view, frame_paths, ground_truth, random_poses,
     render, write_frame,
 };
 use cubecal::rig::Rig;
-use cubecal::synthetic::look_at;
 use image::GrayImage;
 use nalgebra::{Rotation3, Unit, Vector3};
 

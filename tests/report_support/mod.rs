@@ -10,14 +10,14 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use cubecal::calib::observations::{RawObservations, RawPoint, RawView};
 use cubecal::calib::report::CalibrationReport;
 use cubecal::calib::{self, Correspondence, SolveOptions, View};
 use cubecal::camera::{Camera, DistortionModel, Pose};
 use cubecal::capture::session::{SessionHeader, SessionWriter};
-use cubecal::capture::synthetic::{self, RenderSettings};
 use cubecal::capture::{Frame, SourceInfo};
 use cubecal::detect::CornerFinder;
-use cubecal::observations::{RawObservations, RawPoint, RawView};
+use cubecal::render::{self, RenderSettings};
 use cubecal::report::analysis::{COVERAGE_GRID, CoverageGrid};
 use cubecal::rig::Rig;
 use cubecal::station::{Check, Verdict};
@@ -80,7 +80,7 @@ pub fn build_run(dir: &Path, kind: Kind, width: u32, height: u32) -> PathBuf {
                 (0.0, -1.0),
                 (0.0, 1.0),
             ];
-            let mut p: Vec<Pose> = synthetic::random_poses(&rig, &cam, n, 7)
+            let mut p: Vec<Pose> = render::random_poses(&rig, &cam, n, 7)
                 .into_iter()
                 .enumerate()
                 .map(|(k, mut pose)| {
@@ -103,7 +103,7 @@ pub fn build_run(dir: &Path, kind: Kind, width: u32, height: u32) -> PathBuf {
         }
         Kind::PoorCoverage => {
             let n = 6;
-            let p: Vec<Pose> = synthetic::turntable_poses(&rig, &cam, n, 40.0)
+            let p: Vec<Pose> = render::turntable_poses(&rig, &cam, n, 40.0)
                 .into_iter()
                 .map(|mut p| {
                     p.translation *= 2.0;
@@ -143,7 +143,7 @@ pub fn build_run(dir: &Path, kind: Kind, width: u32, height: u32) -> PathBuf {
     let mut raw_views = Vec::new();
     let mut outcomes = Vec::new();
     for (i, (pose, angle)) in poses.iter().zip(&angles).enumerate() {
-        let img = synthetic::render(&rig, &cam, pose, &settings, i as u64).unwrap();
+        let img = render::render(&rig, &cam, pose, &settings, i as u64).unwrap();
         let det = cubecal::detect::detect(&mut finder, &img, &rig).unwrap();
         writer
             .add_frame(

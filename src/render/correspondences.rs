@@ -2,7 +2,8 @@
 //! three-face outside cube, views from around the cube's visible corner, exact projection through a
 //! known camera, and seeded Gaussian corner noise.
 //!
-//! (Rendered *images* of rigs are the job of `capture::synthetic`; this module stops at correspondences.)
+//! (Rendered *images* of rigs are the job of the parent module, [`crate::render`]; this module stops at
+//! correspondences.)
 
 use nalgebra::{Rotation3, Unit, Vector2, Vector3};
 use rand::{Rng, SeedableRng};

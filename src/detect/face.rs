@@ -1,0 +1,71 @@
+//! What labelling produces, shared by the decision ([`super::label`]) and its tests
+//! (`extent`, `identity`, [`super::place`]): labelled faces and corners, rejections
+//! with the grid they concern, and the colour contrast every orientation test holds squares to.
+
+use nalgebra::{Vector2, Vector3};
+
+use super::dense::Dense;
+
+/// Mean white-minus-black square intensity (grey levels) needed for an orientation to count as decided.
+pub const MIN_COLOUR_CONTRAST: f64 = 10.0;
+
+/// One labelled corner.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LabelledCorner {
+    pub row: usize,
+    pub col: usize,
+    pub xyz: Vector3<f64>,
+    pub uv: Vector2<f64>,
+    /// Estimated standard deviation of each coordinate of `uv` (px), from the refinement fit.
+    pub sigma_px: f64,
+}
+
+/// A face found in the frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FaceDetection {
+    pub face: usize,
+    pub corners: Vec<LabelledCorner>,
+    /// White-minus-black mean intensity that decided the orientation (grey levels).
+    pub colour_contrast: f64,
+}
+
+/// Why a grid (or the frame) was not used.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rejection {
+    pub reason: String,
+    /// The rejected grid's corners in its own row/column indices (empty for a rejection of the whole
+    /// frame, such as "no checkerboard grid found").
+    pub corners: Vec<GridCorner>,
+}
+
+/// A corner of a rejected grid: its index in the grid (not a face's) and its image position.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GridCorner {
+    pub row: usize,
+    pub col: usize,
+    pub uv: Vector2<f64>,
+}
+
+impl Rejection {
+    /// A rejection of the frame as a whole (no grid to show).
+    pub fn frame(reason: String) -> Rejection {
+        Rejection {
+            reason,
+            corners: Vec::new(),
+        }
+    }
+}
+
+impl Dense {
+    /// The grid's corners for a rejection.
+    pub(super) fn grid_corners(&self) -> Vec<GridCorner> {
+        (0..self.rows)
+            .flat_map(|r| (0..self.cols).map(move |c| (r, c)))
+            .map(|(row, col)| GridCorner {
+                row,
+                col,
+                uv: self.at(row, col),
+            })
+            .collect()
+    }
+}
