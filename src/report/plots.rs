@@ -222,6 +222,21 @@ fn legend<DB: DrawingBackend>(
     Ok(())
 }
 
+/// The cells of a `cols × rows` grid over an image of `image_size`, row by row: each cell's index
+/// (`row · cols + col`) and its corners in image coordinates (the coverage grid and the colour bands).
+fn image_cells(
+    image_size: [u32; 2],
+    cols: usize,
+    rows: usize,
+) -> impl Iterator<Item = (usize, [(f64, f64); 2])> {
+    let (w, h) = (f64::from(image_size[0]), f64::from(image_size[1]));
+    let x = move |c: usize| c as f64 * w / cols as f64 - 0.5;
+    let y = move |r: usize| r as f64 * h / rows as f64 - 0.5;
+    (0..rows).flat_map(move |r| {
+        (0..cols).map(move |c| (r * cols + c, [(x(c), y(r)), (x(c + 1), y(r + 1))]))
+    })
+}
+
 /// All accepted corners over the frame, coloured by face, on the coverage grid.
 #[derive(Debug, Clone)]
 pub struct CoverageFigure {
@@ -251,37 +266,18 @@ impl Figure for CoverageFigure {
             100.0 * self.grid.fraction()
         );
         let (mut chart, geometry) = image_chart(&main, &caption, self.image_size)?;
-        let (w, hh) = (f64::from(self.image_size[0]), f64::from(self.image_size[1]));
-        let (cols, rows) = (self.grid.cols, self.grid.rows);
-        let cell = |c: usize, r: usize| {
-            [
-                (
-                    c as f64 * w / cols as f64 - 0.5,
-                    r as f64 * hh / rows as f64 - 0.5,
-                ),
-                (
-                    (c + 1) as f64 * w / cols as f64 - 0.5,
-                    (r + 1) as f64 * hh / rows as f64 - 0.5,
-                ),
-            ]
-        };
+        let cells = || image_cells(self.image_size, self.grid.cols, self.grid.rows);
         let covered = RGBColor(200, 235, 200);
         let empty = RGBColor(250, 225, 225);
-        chart.draw_series((0..rows).flat_map(|r| (0..cols).map(move |c| (r, c))).map(
-            |(r, c)| {
-                let fill = if self.grid.counts[r * cols + c] > 0 {
-                    covered
-                } else {
-                    empty
-                };
-                Rectangle::new(cell(c, r), fill.filled())
-            },
-        ))?;
-        chart.draw_series(
-            (0..rows)
-                .flat_map(|r| (0..cols).map(move |c| (r, c)))
-                .map(|(r, c)| Rectangle::new(cell(c, r), GREY.stroke_width(1))),
-        )?;
+        chart.draw_series(cells().map(|(k, cell)| {
+            let fill = if self.grid.counts[k] > 0 {
+                covered
+            } else {
+                empty
+            };
+            Rectangle::new(cell, fill.filled())
+        }))?;
+        chart.draw_series(cells().map(|(_, cell)| Rectangle::new(cell, GREY.stroke_width(1))))?;
         chart.draw_series(self.points.iter().map(|&((u, v), face)| {
             let colour = face.map_or(GREY, face_rgb);
             Circle::new((u, v), 2, colour.filled())
@@ -630,29 +626,16 @@ impl Figure for HeatmapFigure {
         let (main, bar) = root.split_horizontally(w - COLOUR_BAR);
         let (mut chart, geometry) = image_chart(&main, &self.caption, self.image_size)?;
         let (step, start, bands) = self.bands();
+        let band = |k: usize| viridis(k as f64 / (bands.max(2) - 1) as f64);
         let colour = |v: f64| {
             if !v.is_finite() {
                 return GREY;
             }
-            let k = (((v - start) / step).floor().max(0.0) as usize).min(bands - 1);
-            viridis(k as f64 / (bands.max(2) - 1) as f64)
+            band((((v - start) / step).floor().max(0.0) as usize).min(bands - 1))
         };
-        let (iw, ih) = (f64::from(self.image_size[0]), f64::from(self.image_size[1]));
-        let (nx, ny) = (self.field.nx, self.field.ny);
         chart.draw_series(
-            (0..ny)
-                .flat_map(|j| (0..nx).map(move |i| (i, j)))
-                .map(|(i, j)| {
-                    let a = (
-                        i as f64 * iw / nx as f64 - 0.5,
-                        j as f64 * ih / ny as f64 - 0.5,
-                    );
-                    let b = (
-                        (i + 1) as f64 * iw / nx as f64 - 0.5,
-                        (j + 1) as f64 * ih / ny as f64 - 0.5,
-                    );
-                    Rectangle::new([a, b], colour(self.field.values[j * nx + i]).filled())
-                }),
+            image_cells(self.image_size, self.field.nx, self.field.ny)
+                .map(|(k, cell)| Rectangle::new(cell, colour(self.field.values[k]).filled())),
         )?;
         for line in &self.lines {
             chart.draw_series(std::iter::once(PathElement::new(
@@ -667,8 +650,10 @@ impl Figure for HeatmapFigure {
         bar.draw(&Text::new(self.unit.clone(), (4, top - 20), (FONT, 13)))?;
         for k in 0..bands {
             let y = top + (bands - 1 - k) as i32 * per;
-            let c = viridis(k as f64 / (bands.max(2) - 1) as f64);
-            bar.draw(&Rectangle::new([(4, y), (4 + sw, y + per)], c.filled()))?;
+            bar.draw(&Rectangle::new(
+                [(4, y), (4 + sw, y + per)],
+                band(k).filled(),
+            ))?;
             bar.draw(&Text::new(
                 format!("{:.*}", decimals(step), start + k as f64 * step),
                 (4 + sw + 6, y + per - 12),

@@ -248,7 +248,8 @@ pub struct SolveSection {
     pub fix: Vec<String>,
     /// Robust loss `huber:C` / `cauchy:C` (px), or `none`.
     pub loss: String,
-    /// Fix k3 (and say so) when the data leave it undetermined (σ(k3) > |k3| and > 0.1).
+    /// Fix k3 at 0 (and say so) when the data leave it undetermined: within 2σ of 0 while 1σ moves the
+    /// image border by over a pixel ([`crate::calib::insignificant_at_border`]).
     pub fix_undetermined_k3: bool,
 }
 
