@@ -2,8 +2,17 @@
 //! stripes, fine checkerboards, checkerboards of sizes no face has (several scales and rotations),
 //! salt and pepper, tiny and huge frames, and a proptest over random sizes and content. Every frame
 //! goes through `detect` with the cube rig and with the flat 9×6 board. Nothing may panic, frames
-//! under `MIN_SIDE` must fail with `TooSmall`, no face may be reported, and every call must end
-//! within a generous bound. Each call's time is printed (`cargo test --test detect_fuzz -- --nocapture`).
+//! under `MIN_SIDE` must fail with `TooSmall`, and every call must end within a generous bound.
+//!
+//! The rule on labels: **never a label that changes the intrinsics or a 3D rig's geometry.** So no
+//! face may be reported on the cube rig (a face of a 3D rig placed on the wrong face, or shifted
+//! against the others, changes its geometry), and none on the flat board either, with one exception
+//! that changes nothing: a complete grid of the board's size whose extent is unproven only because
+//! the frame border cuts the next line (`FaceDetection::unproven_extent`). If the pattern in the
+//! frame is a bigger checkerboard, its labels are shifted within its plane, which moves that view's
+//! pose and nothing else: a planar view constrains the camera through its homography up to a
+//! similarity of the plane. Such a face must be the whole board (every corner, one lattice) and its
+//! pose is flagged; mirror labellings are impossible (handedness), broken lattices fail the rule. Each call's time is printed (`cargo test --test detect_fuzz -- --nocapture`).
 //! Every random generator is seeded.
 //!
 //! What this fuzzing found, each kept as a test with its recipe: frames (fine stripes, dense
@@ -108,7 +117,23 @@ impl Fuzz {
                     if w < MIN_SIDE || h < MIN_SIDE {
                         fail("a frame under MIN_SIDE was accepted".into());
                     }
-                    if !det.faces.is_empty() {
+                    // The one harmless label (module doc): a one-face rig's whole board, extent
+                    // unproven only at the frame border, pose flagged.
+                    let harmless = |f: &cubecal::detect::label::FaceDetection| {
+                        let face = &rig.faces[f.face];
+                        rig.faces.len() == 1
+                            && f.unproven_extent
+                                .as_deref()
+                                .is_some_and(|why| why.contains("frame border"))
+                            && f.corners.len() == face.rows * face.cols
+                    };
+                    for f in det.faces.iter().filter(|f| harmless(f)) {
+                        eprintln!(
+                            "{label}: flat board labelled with its pose flagged: {:?}",
+                            f.unproven_extent
+                        );
+                    }
+                    if det.faces.iter().any(|f| !harmless(f)) {
                         let names: Vec<String> = det
                             .faces
                             .iter()
@@ -390,7 +415,9 @@ fn dense_checkerboards_are_searched_within_the_time_bound() {
 /// colours but not that the board ends where the grid does. On a real rig this mislabels, for
 /// example, a partly visible bigger board (or a larger face cut down to a smaller face's size) with
 /// wrong 3D points. The labeller now drops a grid unless, one lattice step beyond each of its sides,
-/// the image shows no corner (`label`'s module doc).
+/// the image shows no corner (`label`'s module doc) — except, on a rig of one face, a grid cut only by
+/// the frame border, labelled with its pose flagged (the module doc's rule: such a shift changes the
+/// view's pose, never the intrinsics). The cube rig must still drop every one of these frames.
 #[test]
 fn boards_cut_by_the_border_are_not_labelled_as_faces() {
     let mut fuzz = Fuzz::new();
@@ -428,7 +455,12 @@ fn boards_cut_by_the_border_are_not_labelled_as_faces() {
             .flat_map(|d| d.rejected.iter().map(|r| r.reason.as_str()))
             .collect();
         eprintln!("{case}: {reasons:?}");
-        if !reasons.iter().any(|r| r.contains("grid may continue")) {
+        // Reaching the rule: rejected for its extent, or (the flat board only) labelled with its pose
+        // flagged for it, which `check` has held to the module doc's exception.
+        let flagged = dets
+            .iter()
+            .any(|d| d.faces.iter().any(|f| f.unproven_extent.is_some()));
+        if !flagged && !reasons.iter().any(|r| r.contains("grid may continue")) {
             fuzz.failures
                 .push(format!("{case}: not rejected for its extent: {reasons:?}"));
         }

@@ -115,6 +115,10 @@ struct CornerRef<'a>(#[serde(with = "CornerJson")] &'a LabelledCorner);
 struct FaceJson<'a> {
     face: &'a str,
     corners: Vec<CornerRef<'a>>,
+    /// Labelled though its extent is not proven (one-face rig, cut only by the frame border): the
+    /// view's pose is not trusted, its intrinsics constraints are.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    unproven_extent: Option<&'a str>,
 }
 
 #[derive(Serialize)]
@@ -160,6 +164,7 @@ impl<'a> ImageJson<'a> {
                 .map(|f| FaceJson {
                     face: face_name(rig, f.face),
                     corners: f.corners.iter().map(CornerRef).collect(),
+                    unproven_extent: f.unproven_extent.as_deref(),
                 })
                 .collect(),
             rejected: det
@@ -298,6 +303,9 @@ fn print_human(p: &Processed, rig: &Rig) -> anyhow::Result<()> {
             face_name(rig, f.face),
             count(f.corners.len(), "corner")
         )?;
+        if let Some(why) = &f.unproven_extent {
+            outln!("    pose not trusted (extent unproven, labelled for a one-face rig): {why}")?;
+        }
     }
     for r in &det.rejected {
         outln!("  rejected: {}", r.reason)?;

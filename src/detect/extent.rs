@@ -293,7 +293,27 @@ pub(super) fn look_beyond(img: &GrayImage, d: &Dense, side: Side) -> SideBeyond 
 /// The grid's extent is proven: on each of its four sides, one lattice step beyond the outermost
 /// line (where a bigger board would have its next line of corners), the corner fit window lies
 /// inside the image and the fit finds no X-corner. Else the reason the grid is dropped.
+#[cfg(test)]
 pub(super) fn check_extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Result<(), String> {
+    extent(img, d, folds).map_err(|f| f.reason)
+}
+
+/// Why a grid's extent is not proven.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) struct ExtentFailure {
+    /// The first failing side's reason, as [`check_extent`] gives it.
+    pub reason: String,
+    /// Only the frame border is in the way: no side shows a corner like the grid's one step beyond
+    /// it, and every side without its empty positions has positions outside the image or too close
+    /// to its border. The grid may be the whole board or a part of a bigger one cut by the border.
+    pub only_border: bool,
+}
+
+/// [`check_extent`], telling a grid whose only missing proof is the frame border from one that may
+/// really continue (a corner beyond it, or undecided positions inside the image).
+pub(super) fn extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Result<(), ExtentFailure> {
+    let mut first: Option<String> = None;
+    let mut only_border = true;
     for side in Side::ALL {
         // A side at a fold ends there: the next line of corners is the fold, on another plane.
         if side.at_fold(folds) {
@@ -312,29 +332,42 @@ pub(super) fn check_extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Resu
         );
         let towards = image_side(b.outward);
         if let Some(c) = b.corners.first() {
-            return Err(format!(
-                "grid may continue: an X-corner like the grid's at ({:.1}, {:.1}), one step beyond its side towards the image {towards}",
-                c.x, c.y
-            ));
+            return Err(ExtentFailure {
+                reason: first.unwrap_or_else(|| format!(
+                    "grid may continue: an X-corner like the grid's at ({:.1}, {:.1}), one step beyond its side towards the image {towards}",
+                    c.x, c.y
+                )),
+                only_border: false,
+            });
         }
         if b.empty < MIN_EMPTY_BEYOND.min(b.n) {
-            let wher = if b.outside + b.clipped > 0 {
+            let at_border = b.outside + b.clipped > 0;
+            only_border &= at_border;
+            let wher = if at_border {
                 format!("beyond the frame border (side towards the image {towards})")
             } else {
                 format!("beyond its side towards the image {towards}")
             };
-            return Err(format!(
-                "grid may continue {wher}: of the {} positions one step beyond it, {} are outside the image, {} too close to the border for a corner fit, {} undecided (checkered squares, no corner fit), {} show no corner ({} needed)",
-                b.n,
-                b.outside,
-                b.clipped,
-                b.undecided,
-                b.empty,
-                MIN_EMPTY_BEYOND.min(b.n)
-            ));
+            if first.is_none() {
+                first = Some(format!(
+                    "grid may continue {wher}: of the {} positions one step beyond it, {} are outside the image, {} too close to the border for a corner fit, {} undecided (checkered squares, no corner fit), {} show no corner ({} needed)",
+                    b.n,
+                    b.outside,
+                    b.clipped,
+                    b.undecided,
+                    b.empty,
+                    MIN_EMPTY_BEYOND.min(b.n)
+                ));
+            }
         }
     }
-    Ok(())
+    match first {
+        None => Ok(()),
+        Some(reason) => Err(ExtentFailure {
+            reason,
+            only_border,
+        }),
+    }
 }
 
 #[cfg(test)]

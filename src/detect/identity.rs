@@ -188,6 +188,9 @@ pub(super) struct Whole {
     pub(super) dense: Dense,
     /// Mappings (face, quarter turns) with the white-minus-black contrast they read.
     pub(super) candidates: Vec<(Mapping, f64)>,
+    /// Why the grid's extent is not proven, when it is labelled all the same (see
+    /// [`FaceDetection::unproven_extent`]).
+    pub(super) unproven_extent: Option<String>,
 }
 
 /// The mappings whose face has the grid's size (directly or turned by 90°).
@@ -296,6 +299,7 @@ fn detection(rig: &Rig, w: &Whole, m: Mapping, contrast: f64) -> (FaceDetection,
             face: m.face,
             corners,
             colour_contrast: contrast,
+            unproven_extent: w.unproven_extent.clone(),
         },
         d,
         m,

@@ -7,7 +7,10 @@
 //!    orientation is transposed; mirror-image labellings are thereby impossible.
 //! 2. **Size.** The (complete) grid's rows × cols must equal a face's, directly or rotated by 90°.
 //! 3. **Extent** (`extent`): the size only means something if the board ends where the
-//!    grid does.
+//!    grid does. On a rig of one face, a grid of the face's size whose only missing proof is the
+//!    frame border is labelled all the same, its pose flagged
+//!    ([`FaceDetection::unproven_extent`]): a shift of a planar view's labels within its plane
+//!    changes that view's pose, never the intrinsics.
 //! 4. **Identity** (`identity`): the face and its orientation, by square colours and,
 //!    when they leave a choice (faces of equal size, 180°-symmetric faces), by the rig geometry of
 //!    all grids of the frame; with two or more faces the labelling must fit one camera clearly
@@ -19,7 +22,7 @@
 
 use super::complete::Completed;
 use super::dense::Dense;
-use super::extent::check_extent;
+use super::extent::extent;
 use super::fold::{self, Piece};
 use super::grid::MIN_LINES;
 use super::identity::{self, Whole};
@@ -80,12 +83,23 @@ pub fn label(
             partials.push(Partial::new(g, grid_folds, reason));
             continue;
         }
-        if let Err(reason) = check_extent(img, &dense, folds) {
-            partials.push(Partial::new(g, grid_folds, reason));
-            continue;
-        }
+        let unproven_extent = match extent(img, &dense, folds) {
+            Ok(()) => None,
+            // One face: a grid of its size cut only by the frame border is the whole board or, if
+            // the rig file understates the board, a part of it whose labels are shifted within the
+            // plane, which moves this view's pose and not the intrinsics. Labelled, pose flagged.
+            Err(f) if f.only_border && rig.faces.len() == 1 => Some(f.reason),
+            Err(f) => {
+                partials.push(Partial::new(g, grid_folds, f.reason));
+                continue;
+            }
+        };
         match identity::by_colours(img, rig, &dense, &by_size) {
-            Ok(candidates) => whole.push(Whole { dense, candidates }),
+            Ok(candidates) => whole.push(Whole {
+                dense,
+                candidates,
+                unproven_extent,
+            }),
             Err(reason) => rejected.push(Rejection {
                 reason,
                 corners: dense.grid_corners(),
