@@ -49,6 +49,7 @@ pub enum Loss {
 }
 
 impl Loss {
+    #[inline]
     pub(super) fn rho(self, s: f64) -> f64 {
         match self {
             Loss::Squared => 0.5 * s * s,
@@ -64,6 +65,7 @@ impl Loss {
     }
 
     /// IRLS weight `ρ'(s)/s`.
+    #[inline]
     pub(super) fn weight(self, s: f64) -> f64 {
         match self {
             Loss::Squared => 1.0,
@@ -128,6 +130,7 @@ impl Termination {
     }
 }
 
+#[inline]
 pub(super) fn skew_matrix(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
 }
@@ -136,6 +139,7 @@ pub(super) fn skew_matrix(v: &Vector3<f64>) -> Matrix3<f64> {
 /// motion that carries it (`R ← exp([δω]ₓ) R`, `t ← t + δt`): `j · [−[a]ₓ | I]`, with `j` the image
 /// point's Jacobian with respect to the moved point and `a` the rotated arm (`R X`, or for a face
 /// `R (X − c)`).
+#[inline]
 pub(super) fn rigid_jacobian(j: &PointJacobian, arm: &Vector3<f64>) -> Mat2x6 {
     let mut out = Mat2x6::zeros();
     out.fixed_view_mut::<2, 3>(0, 0)
@@ -204,6 +208,7 @@ impl Normal {
     }
 
     /// Count one point with residual norm `s` into the costs; returns its IRLS weight.
+    #[inline]
     pub(super) fn add_cost(&mut self, loss: Loss, s: f64) -> f64 {
         let wgt = loss.weight(s);
         self.cost += loss.rho(s);
@@ -214,6 +219,7 @@ impl Normal {
 
     /// Add one residual row's pose part `b` (weight `wgt`, residual `r`) to view `i`'s blocks (the
     /// lower triangle of `V_i`: see [`Normal::fill_upper_triangles`]).
+    #[inline]
     pub(super) fn add_pose_row(&mut self, i: usize, wgt: f64, b: &Vec6, r: f64) {
         self.v[i].syger(wgt, b, b, 1.0);
         self.g_p[i].axpy(wgt * r, b, 1.0);

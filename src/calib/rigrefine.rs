@@ -40,7 +40,7 @@
 //! square size, a board that is not flat: no rigid motion explains it) is refused with
 //! [`CalibError::RigMismatch`], naming the face.
 
-use nalgebra::{Matrix3, Rotation3, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 use tracing::{debug, info};
 
@@ -492,6 +492,32 @@ impl Problem<'_> {
     }
 }
 
+/// Add one residual row's shared part `ar` (at the shared indices `idx`; pose part `b`, weight `wgt`,
+/// residual `r`) to the lower triangle of `U`, to `W_i` and to `g_c`. A function of its own so that the
+/// compiler knows the three blocks do not alias (the hot loop of the rig refinement).
+#[allow(clippy::too_many_arguments)]
+fn add_shared_row(
+    u: &mut DMatrix<f64>,
+    w: &mut DMatrix<f64>,
+    g_c: &mut DVector<f64>,
+    idx: &[usize],
+    ar: &[f64],
+    b: &Vector6<f64>,
+    wgt: f64,
+    r: f64,
+) {
+    for (x, &gx) in idx.iter().enumerate() {
+        let wa = wgt * ar[x];
+        for (y, &gy) in idx.iter().enumerate().take(x + 1) {
+            u[(gx, gy)] += wa * ar[y];
+        }
+        for k in 0..6 {
+            w[(gx, k)] += wa * b[k];
+        }
+        g_c[gx] += wa * r;
+    }
+}
+
 /// The rig problem: the shared block is the free intrinsics followed by six parameters per refined face.
 impl BlockProblem for Problem<'_> {
     type State = State;
@@ -553,18 +579,17 @@ impl BlockProblem for Problem<'_> {
                 }
                 let wgt = n.add_cost(self.loss, r.norm());
                 for row in 0..2 {
-                    let ar = &a[row][..idx.len()];
                     let b = j_pose.row(row).transpose();
-                    for (x, &gx) in idx.iter().enumerate() {
-                        let wa = wgt * ar[x];
-                        for (y, &gy) in idx.iter().enumerate().take(x + 1) {
-                            n.u[(gx, gy)] += wa * ar[y];
-                        }
-                        for k in 0..6 {
-                            n.w[i][(gx, k)] += wa * b[k];
-                        }
-                        n.g_c[gx] += wa * r[row];
-                    }
+                    add_shared_row(
+                        &mut n.u,
+                        &mut n.w[i],
+                        &mut n.g_c,
+                        &idx,
+                        &a[row][..idx.len()],
+                        &b,
+                        wgt,
+                        r[row],
+                    );
                     n.add_pose_row(i, wgt, &b, r[row]);
                 }
             }
