@@ -9,18 +9,16 @@
 //! point; translations additively.
 //!
 //! ## Normal equations and the Schur complement
-//! With `J = [J_c | J_1 … J_m]` the normal matrix has an arrow shape:
-//! `U = Σ J_cᵀJ_c` (p×p), `V_i = J_iᵀJ_i` (6×6 per view), `W_i = J_cᵀJ_i`. Each step solves the reduced
-//! system `(U − Σ W_i V_i⁻¹ W_iᵀ) δ_c = −g_c + Σ W_i V_i⁻¹ g_i`, then `δ_i = V_i⁻¹(−g_i − W_iᵀ δ_c)`:
-//! cost linear in the number of views, and a p×p (p ≤ 13) dense solve. Damping is Marquardt's
-//! (`λ·diag`), updated with Nielsen's rule from the gain ratio.
+//! The free intrinsics (p ≤ 13) are the shared block of the Levenberg–Marquardt machinery in
+//! `lm_core.rs`, the view poses its per-view blocks: each step is a p×p dense solve plus 6×6 blocks per
+//! view, with Marquardt's damping updated by Nielsen's rule. The intrinsic blocks are accumulated over
+//! the full 13-vector in fixed-size matrices and mapped to the free parameters once per linearisation.
 //!
 //! ## Uncertainty
 //! At the optimum `σ̂² = Σ r² / (2n − p_total)` and the covariance of the intrinsics is the
 //! corresponding block of `σ̂² (JᵀJ)⁻¹`, which is exactly `σ̂² S⁻¹` with `S` the undamped Schur
-//! complement. Per-view pose covariance is `σ̂² (V_i⁻¹ + V_i⁻¹ W_iᵀ S⁻¹ W_i V_i⁻¹)`. These assume
-//! independent, equal-variance corner noise and a correct model; `tests/calibration.rs` checks the
-//! claimed ±2σ coverage over seeded trials.
+//! complement (`lm_core.rs`). These assume independent, equal-variance corner noise and a correct
+//! model; `tests/calibration.rs` checks the claimed ±2σ coverage over seeded trials.
 //!
 //! ## Robustness and outliers
 //! An optional robust loss (Huber, Cauchy) is applied by iteratively reweighted least squares.
@@ -43,63 +41,23 @@
 //! `σ√(1 − p/2n)`, and σ̂ estimates exactly that spread, so the rate holds for the residuals tested
 //! (`tests/defects.rs` checks it on seeded synthetic data).
 
-use nalgebra::{DMatrix, DVector, Matrix3, SMatrix, SVector, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, SMatrix, SVector, Vector2};
 use serde::{Deserialize, Serialize};
 use tracing::{debug, info};
 
 use super::init::{InitMethod, Initial, image_centre, initialise};
+use super::lm_core::{
+    BlockProblem, Loss, Normal, Step, Termination, levenberg_marquardt, rigid_jacobian,
+    update_poses,
+};
 use super::{CalibError, View, validate_image_points, validate_views};
 use crate::camera::{Camera, DistortionModel, N_INTRINSIC, PARAM_NAMES, Pose, idx};
 
 type Mat13 = SMatrix<f64, N_INTRINSIC, N_INTRINSIC>;
 type Mat13x6 = SMatrix<f64, N_INTRINSIC, 6>;
-type Mat6 = SMatrix<f64, 6, 6>;
 type Vec13 = SVector<f64, N_INTRINSIC>;
-type Vec6 = SVector<f64, 6>;
-
-/// Robust loss applied to each point's residual norm `s` (pixels).
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Loss {
-    /// Ordinary least squares, `ρ(s) = s²/2`.
-    #[default]
-    Squared,
-    /// Huber with threshold `c` px: quadratic below `c`, linear above.
-    Huber(f64),
-    /// Cauchy (Lorentzian) with scale `c` px: `ρ(s) = c²/2 · ln(1 + s²/c²)`.
-    Cauchy(f64),
-}
-
-impl Loss {
-    pub(super) fn rho(self, s: f64) -> f64 {
-        match self {
-            Loss::Squared => 0.5 * s * s,
-            Loss::Huber(c) => {
-                if s <= c {
-                    0.5 * s * s
-                } else {
-                    c * s - 0.5 * c * c
-                }
-            }
-            Loss::Cauchy(c) => 0.5 * c * c * (s * s / (c * c)).ln_1p(),
-        }
-    }
-
-    /// IRLS weight `ρ'(s)/s`.
-    pub(super) fn weight(self, s: f64) -> f64 {
-        match self {
-            Loss::Squared => 1.0,
-            Loss::Huber(c) => {
-                if s <= c {
-                    1.0
-                } else {
-                    c / s
-                }
-            }
-            Loss::Cauchy(c) => 1.0 / (1.0 + s * s / (c * c)),
-        }
-    }
-}
+#[cfg(test)]
+use {super::lm_core::Vec6, nalgebra::Vector3};
 
 /// Parameters held fixed during refinement.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -155,55 +113,6 @@ impl Default for SolveOptions {
             loss: Loss::Squared,
             outlier_sigma: None,
             max_iterations: 200,
-        }
-    }
-}
-
-/// Why the refinement stopped.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Termination {
-    /// The quadratic model predicts a relative cost decrease below 1e-12: at the optimum.
-    SmallPredictedDecrease,
-    /// The residuals are zero to machine precision.
-    ZeroResidual,
-    /// No step decreases the cost any further (damping exhausted) after the cost had stopped changing.
-    NoFurtherDecrease,
-    /// The iteration limit was reached before convergence: the result is not trustworthy.
-    MaxIterations,
-    /// Damping exhausted while the cost was still decreasing noticeably: the result is not trustworthy.
-    Stalled,
-}
-
-impl Termination {
-    /// Whether the refinement reached an optimum.
-    pub fn is_converged(self) -> bool {
-        matches!(
-            self,
-            Termination::SmallPredictedDecrease
-                | Termination::ZeroResidual
-                | Termination::NoFurtherDecrease
-        )
-    }
-
-    /// The reason in words, for people.
-    pub fn describe(self) -> &'static str {
-        match self {
-            Termination::SmallPredictedDecrease => "no step could reduce the error noticeably",
-            Termination::ZeroResidual => "the data are fitted exactly",
-            Termination::NoFurtherDecrease => "the error stopped decreasing",
-            Termination::MaxIterations => "the iteration limit was reached",
-            Termination::Stalled => "no step reduced the error although it was still falling",
-        }
-    }
-
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Termination::SmallPredictedDecrease => "small_predicted_decrease",
-            Termination::ZeroResidual => "zero_residual",
-            Termination::NoFurtherDecrease => "no_further_decrease",
-            Termination::MaxIterations => "max_iterations",
-            Termination::Stalled => "stalled",
         }
     }
 }
@@ -322,6 +231,34 @@ impl ParamMap {
     pub(super) fn len(&self) -> usize {
         self.names.len()
     }
+
+    /// `camera` with its full parameter vector moved by `M δθ`; `d` holds at least the free
+    /// parameters' increments `δθ` (the first [`ParamMap::len`] entries are used).
+    pub(super) fn step(&self, camera: &Camera, d: &[f64]) -> Camera {
+        let dx = &self.m * DVector::from_column_slice(&d[..self.len()]);
+        let mut cam = camera.clone();
+        for k in 0..N_INTRINSIC {
+            cam.params[k] += dx[k];
+        }
+        cam
+    }
+
+    /// From the covariance of the free parameters: the standard deviation of each of the 13 intrinsic
+    /// parameters (0 for fixed ones), and which of them are estimated.
+    pub(super) fn std_dev(
+        &self,
+        covariance: &DMatrix<f64>,
+    ) -> ([f64; N_INTRINSIC], [bool; N_INTRINSIC]) {
+        let m = &self.m;
+        let full_cov = m * covariance * m.transpose();
+        let mut std_dev = [0.0; N_INTRINSIC];
+        let mut estimated = [false; N_INTRINSIC];
+        for k in 0..N_INTRINSIC {
+            estimated[k] = m.row(k).iter().any(|&x| x != 0.0);
+            std_dev[k] = full_cov[(k, k)].max(0.0).sqrt();
+        }
+        (std_dev, estimated)
+    }
 }
 
 /// Apply the fixes to an initial camera so that fixed parameters hold their fixed values.
@@ -354,29 +291,19 @@ pub(super) fn apply_fixes(camera: &mut Camera, fix: &Fix) {
     }
 }
 
-/// Normal equations accumulated at one linearisation point.
-struct Normal {
-    u: Mat13,
-    g_c: Vec13,
-    v: Vec<Mat6>,
-    w: Vec<Mat13x6>,
-    g_p: Vec<Vec6>,
-    /// Robust cost `Σ ρ(‖r‖)`.
-    cost: f64,
-    /// Weighted squared residuals `Σ w ‖r‖²` and plain `Σ ‖r‖²`.
-    wssr: f64,
-    ssr: f64,
-}
-
+/// The camera problem: the free intrinsics are the shared block of [`BlockProblem`].
 struct Problem<'a> {
     views: &'a [View],
     /// `active[i][j]`: point j of view i is used.
     active: Vec<Vec<bool>>,
     loss: Loss,
+    map: ParamMap,
 }
 
-pub(super) fn skew_matrix(v: &Vector3<f64>) -> Matrix3<f64> {
-    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
+/// The camera and the per-view poses.
+struct State {
+    camera: Camera,
+    poses: Vec<Pose>,
 }
 
 /// Residual `π(cam_from_rig · X) − u` of one correspondence with its Jacobians with respect to the full
@@ -396,12 +323,7 @@ fn residual_jacobians(
     let xr = pose.rotation * c.xyz;
     let xc = xr + pose.translation;
     let (uv, j_int, j_pt) = camera.project_cam_with_jacobians(&xc)?;
-    let mut j_pose = SMatrix::<f64, 2, 6>::zeros();
-    j_pose
-        .fixed_view_mut::<2, 3>(0, 0)
-        .copy_from(&(-(j_pt * skew_matrix(&xr))));
-    j_pose.fixed_view_mut::<2, 3>(0, 3).copy_from(&j_pt);
-    Ok((uv - c.uv, j_int, j_pose))
+    Ok((uv - c.uv, j_int, rigid_jacobian(&j_pt, &xr)))
 }
 
 impl Problem<'_> {
@@ -411,216 +333,80 @@ impl Problem<'_> {
             .map(|a| a.iter().filter(|&&x| x).count())
             .sum()
     }
+}
+
+impl BlockProblem for Problem<'_> {
+    type State = State;
+    const SINGULAR: &'static str = "the normal equations are singular";
+
+    fn n_residuals(&self) -> usize {
+        2 * self.n_active()
+    }
 
     /// Robust cost only, or `None` if a point falls behind the camera.
-    fn cost(&self, camera: &Camera, poses: &[Pose]) -> Option<f64> {
+    fn cost(&self, s: &State) -> Option<f64> {
         let mut cost = 0.0;
         for (i, v) in self.views.iter().enumerate() {
             for (j, c) in v.points.iter().enumerate() {
                 if !self.active[i][j] {
                     continue;
                 }
-                let uv = camera.project(&poses[i], &c.xyz).ok()?;
+                let uv = s.camera.project(&s.poses[i], &c.xyz).ok()?;
                 cost += self.loss.rho((uv - c.uv).norm());
             }
         }
         cost.is_finite().then_some(cost)
     }
 
-    fn linearise(&self, camera: &Camera, poses: &[Pose]) -> Result<Normal, CalibError> {
+    /// Accumulates the intrinsic blocks over the full 13-vector in fixed-size matrices (the hot path),
+    /// then maps them to the free parameters once.
+    fn linearise(&self, s: &State) -> Result<Normal, CalibError> {
         let nv = self.views.len();
-        let mut n = Normal {
-            u: Mat13::zeros(),
-            g_c: Vec13::zeros(),
-            v: vec![Mat6::zeros(); nv],
-            w: vec![Mat13x6::zeros(); nv],
-            g_p: vec![Vec6::zeros(); nv],
-            cost: 0.0,
-            wssr: 0.0,
-            ssr: 0.0,
-        };
+        let m = &self.map.m;
+        let mt = m.transpose();
+        let mut n = Normal::zeros(self.map.len(), nv);
+        let mut u = Mat13::zeros();
+        let mut g_c = Vec13::zeros();
         for (i, view) in self.views.iter().enumerate() {
-            let pose = &poses[i];
+            let pose = &s.poses[i];
+            let mut w = Mat13x6::zeros();
             for (j, c) in view.points.iter().enumerate() {
                 if !self.active[i][j] {
                     continue;
                 }
-                let (r, j_int, j_pose) = residual_jacobians(camera, pose, c).map_err(|_| {
+                let (r, j_int, j_pose) = residual_jacobians(&s.camera, pose, c).map_err(|_| {
                     CalibError::Degenerate {
                         reason: format!("point {j} moved behind the camera during refinement"),
                     }
                     .in_view(&view.name)
                 })?;
-                let s = r.norm();
-                let wgt = self.loss.weight(s);
-                n.cost += self.loss.rho(s);
-                n.ssr += s * s;
-                n.wssr += wgt * s * s;
+                let wgt = n.add_cost(self.loss, r.norm());
                 // Rank-2 updates of the lower triangles (symmetrised once at the end).
                 for row in 0..2 {
                     let a = j_int.row(row).transpose();
                     let b = j_pose.row(row).transpose();
-                    n.u.syger(wgt, &a, &a, 1.0);
-                    n.v[i].syger(wgt, &b, &b, 1.0);
-                    n.w[i].ger(wgt, &a, &b, 1.0);
-                    n.g_c.axpy(wgt * r[row], &a, 1.0);
-                    n.g_p[i].axpy(wgt * r[row], &b, 1.0);
+                    u.syger(wgt, &a, &a, 1.0);
+                    w.ger(wgt, &a, &b, 1.0);
+                    g_c.axpy(wgt * r[row], &a, 1.0);
+                    n.add_pose_row(i, wgt, &b, r[row]);
                 }
             }
+            n.w[i] = &mt * DMatrix::from_column_slice(N_INTRINSIC, 6, w.as_slice());
         }
-        n.u.fill_upper_triangle_with_lower_triangle();
-        for v in &mut n.v {
-            v.fill_upper_triangle_with_lower_triangle();
-        }
+        // The V_i (and the still empty free block): the mapped U is symmetric as it stands.
+        n.fill_upper_triangles();
+        u.fill_upper_triangle_with_lower_triangle();
+        n.u = &mt * DMatrix::from_column_slice(N_INTRINSIC, N_INTRINSIC, u.as_slice()) * m;
+        n.g_c = &mt * DVector::from_column_slice(g_c.as_slice());
         Ok(n)
     }
-}
 
-/// Result of solving the (damped) reduced system.
-struct Step {
-    d_c: DVector<f64>,
-    d_p: Vec<Vec6>,
-}
-
-/// Solve `(A + λ D) δ = −g` by the Schur complement on the intrinsic block.
-fn solve_step(n: &Normal, map: &ParamMap, lambda: f64) -> Option<Step> {
-    let m = &map.m;
-    let u =
-        m.transpose() * DMatrix::from_column_slice(N_INTRINSIC, N_INTRINSIC, n.u.as_slice()) * m;
-    let g_c = m.transpose() * DVector::from_column_slice(n.g_c.as_slice());
-    let p = map.len();
-    let mut s = u.clone();
-    for k in 0..p {
-        s[(k, k)] += lambda * u[(k, k)].max(1e-12);
-    }
-    let mut rhs = -g_c;
-    let mut vinv = Vec::with_capacity(n.v.len());
-    let mut ws = Vec::with_capacity(n.v.len());
-    for i in 0..n.v.len() {
-        let mut vi = n.v[i];
-        for k in 0..6 {
-            vi[(k, k)] += lambda * n.v[i][(k, k)].max(1e-12);
-        }
-        let vi_inv = vi.cholesky()?.inverse();
-        let wi = m.transpose() * DMatrix::from_column_slice(N_INTRINSIC, 6, n.w[i].as_slice());
-        let wv = &wi * DMatrix::from_column_slice(6, 6, vi_inv.as_slice());
-        s -= &wv * wi.transpose();
-        rhs += &wv * DVector::from_column_slice(n.g_p[i].as_slice());
-        vinv.push(vi_inv);
-        ws.push(wi);
-    }
-    let d_c = s.cholesky()?.solve(&rhs);
-    let mut d_p = Vec::with_capacity(n.v.len());
-    for i in 0..n.v.len() {
-        let wt_dc = ws[i].transpose() * &d_c;
-        let b = -n.g_p[i] - Vec6::from_column_slice(wt_dc.as_slice());
-        d_p.push(vinv[i] * b);
-    }
-    Some(Step { d_c, d_p })
-}
-
-fn apply_step(camera: &Camera, poses: &[Pose], map: &ParamMap, step: &Step) -> (Camera, Vec<Pose>) {
-    let dx = &map.m * &step.d_c;
-    let mut cam = camera.clone();
-    for k in 0..N_INTRINSIC {
-        cam.params[k] += dx[k];
-    }
-    let new_poses = poses
-        .iter()
-        .zip(&step.d_p)
-        .map(|(p, d)| Pose {
-            rotation: nalgebra::Rotation3::new(Vector3::new(d[0], d[1], d[2])) * p.rotation,
-            translation: p.translation + Vector3::new(d[3], d[4], d[5]),
-        })
-        .collect();
-    (cam, new_poses)
-}
-
-/// Run LM from the given state; returns the refined state, iterations and termination.
-fn levenberg_marquardt(
-    problem: &Problem<'_>,
-    map: &ParamMap,
-    mut camera: Camera,
-    mut poses: Vec<Pose>,
-    max_iterations: usize,
-) -> Result<(Camera, Vec<Pose>, usize, Termination), CalibError> {
-    let mut lambda = 1e-3;
-    let mut nu = 2.0;
-    let mut normal = problem.linearise(&camera, &poses)?;
-    let m_res = 2 * problem.n_active();
-    let zero_cost = 1e-26 * m_res as f64;
-    let mut last_rel_decrease = f64::INFINITY;
-    for iteration in 1..=max_iterations {
-        if normal.cost <= zero_cost {
-            return Ok((camera, poses, iteration - 1, Termination::ZeroResidual));
-        }
-        let Some(step) = solve_step(&normal, map, lambda) else {
-            lambda *= nu;
-            nu *= 2.0;
-            if lambda > 1e20 {
-                return Err(CalibError::Unobservable {
-                    reason: "the normal equations are singular".into(),
-                });
-            }
-            continue;
-        };
-        // Predicted decrease of the quadratic model: ½ (λ δᵀDδ − gᵀδ), in free coordinates.
-        let pred = predicted_decrease(&normal, map, &step, lambda);
-        if pred <= 1e-12 * normal.cost {
-            return Ok((
-                camera,
-                poses,
-                iteration,
-                Termination::SmallPredictedDecrease,
-            ));
-        }
-        let (cam_new, poses_new) = apply_step(&camera, &poses, map, &step);
-        let new_cost = problem.cost(&cam_new, &poses_new);
-        match new_cost {
-            Some(c) if c < normal.cost => {
-                let rho = (normal.cost - c) / pred;
-                last_rel_decrease = (normal.cost - c) / normal.cost;
-                lambda *= (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0);
-                nu = 2.0;
-                camera = cam_new;
-                poses = poses_new;
-                normal = problem.linearise(&camera, &poses)?;
-                debug!(iteration, cost = normal.cost, lambda, "LM step accepted");
-            }
-            _ => {
-                lambda *= nu;
-                nu *= 2.0;
-                if lambda > 1e16 {
-                    let t = if last_rel_decrease < 1e-6 {
-                        Termination::NoFurtherDecrease
-                    } else {
-                        Termination::Stalled
-                    };
-                    return Ok((camera, poses, iteration, t));
-                }
-            }
+    fn apply(&self, s: &State, step: &Step) -> State {
+        State {
+            camera: self.map.step(&s.camera, step.d_c.as_slice()),
+            poses: update_poses(&s.poses, &step.d_p),
         }
     }
-    Ok((camera, poses, max_iterations, Termination::MaxIterations))
-}
-
-fn predicted_decrease(n: &Normal, map: &ParamMap, step: &Step, lambda: f64) -> f64 {
-    let m = &map.m;
-    let u =
-        m.transpose() * DMatrix::from_column_slice(N_INTRINSIC, N_INTRINSIC, n.u.as_slice()) * m;
-    let g_c = m.transpose() * DVector::from_column_slice(n.g_c.as_slice());
-    let mut dd = 0.0;
-    let mut gd = g_c.dot(&step.d_c);
-    for k in 0..map.len() {
-        dd += u[(k, k)].max(1e-12) * step.d_c[k] * step.d_c[k];
-    }
-    for i in 0..n.v.len() {
-        for k in 0..6 {
-            dd += n.v[i][(k, k)].max(1e-12) * step.d_p[i][k] * step.d_p[i][k];
-        }
-        gd += n.g_p[i].dot(&step.d_p[i]);
-    }
-    0.5 * (lambda * dd - gd)
 }
 
 /// Validate, initialise and refine. See the module docs for the method.
@@ -684,13 +470,16 @@ pub fn solve_from(
         .clone()
         .with_distortion(opts.model, &init.camera.distortion_coefficients());
     apply_fixes(&mut camera, &opts.fix);
-    let map = ParamMap::new(opts.model, &opts.fix);
     let mut problem = Problem {
         views,
         active: views.iter().map(|v| vec![true; v.points.len()]).collect(),
         loss: opts.loss,
+        map: ParamMap::new(opts.model, &opts.fix),
     };
-    let mut poses = init.poses.clone();
+    let mut state = State {
+        camera,
+        poses: init.poses.clone(),
+    };
     let mut total_iterations = 0;
     let mut termination;
     // Each round moves at least one point: a point is dropped at most twice and re-admitted at most
@@ -701,10 +490,8 @@ pub fn solve_from(
     let mut round = 0;
     loop {
         round += 1;
-        let (c, p, it, term) =
-            levenberg_marquardt(&problem, &map, camera, poses, opts.max_iterations)?;
-        camera = c;
-        poses = p;
+        let (s, it, term) = levenberg_marquardt(&problem, state, opts.max_iterations)?;
+        state = s;
         total_iterations += it;
         termination = term;
         info!(
@@ -717,19 +504,11 @@ pub fn solve_from(
         if round >= max_rounds || !termination.is_converged() {
             break;
         }
-        if outlier_round(&mut problem, &mut readmitted, &camera, &poses, k)? == 0 {
+        if outlier_round(&mut problem, &mut readmitted, &state, k)? == 0 {
             break;
         }
     }
-    let cal = finish(
-        &problem,
-        &map,
-        camera,
-        poses,
-        total_iterations,
-        termination,
-        init.method,
-    )?;
+    let cal = finish(&problem, state, total_iterations, termination, init.method)?;
     let [w, h] = cal.camera.image_size;
     let (cx, cy) = (cal.camera.cx(), cal.camera.cy());
     let inside = |x: f64, n: u32| x >= -0.5 && x <= f64::from(n) - 0.5;
@@ -751,10 +530,10 @@ pub fn solve_from(
 fn outlier_round(
     problem: &mut Problem<'_>,
     readmitted: &mut [Vec<bool>],
-    camera: &Camera,
-    poses: &[Pose],
+    state: &State,
     k: f64,
 ) -> Result<usize, CalibError> {
+    let State { camera, poses } = state;
     let mut comps = Vec::new();
     let mut norms: Vec<Vec<Option<f64>>> = Vec::with_capacity(problem.views.len());
     for (i, v) in problem.views.iter().enumerate() {
@@ -821,63 +600,28 @@ fn outlier_round(
 
 fn finish(
     problem: &Problem<'_>,
-    map: &ParamMap,
-    camera: Camera,
-    poses: Vec<Pose>,
+    state: State,
     iterations: usize,
     termination: Termination,
     init_method: InitMethod,
 ) -> Result<Calibration, CalibError> {
-    let n = problem.linearise(&camera, &poses)?;
+    let n = problem.linearise(&state)?;
+    let State { camera, poses } = state;
+    let map = &problem.map;
     let n_points = problem.n_active();
     let m_res = 2 * n_points;
-    let p_total = map.len() + 6 * problem.views.len();
-    if m_res <= p_total {
-        return Err(CalibError::Unobservable {
-            reason: format!("{m_res} residuals for {p_total} parameters"),
-        });
-    }
-    let sigma2 = n.wssr / (m_res - p_total) as f64;
     // Undamped Schur complement and its inverse: the marginal information of the intrinsics.
-    let m = &map.m;
-    let mut s =
-        m.transpose() * DMatrix::from_column_slice(N_INTRINSIC, N_INTRINSIC, n.u.as_slice()) * m;
-    let mut vinv = Vec::with_capacity(n.v.len());
-    let mut ws = Vec::with_capacity(n.v.len());
-    for i in 0..n.v.len() {
-        let vi_inv =
-            n.v[i]
-                .cholesky()
-                .map(|c| c.inverse())
-                .ok_or_else(|| CalibError::Unobservable {
-                    reason: format!(
-                        "the pose of view '{}' is not determined",
-                        problem.views[i].name
-                    ),
-                })?;
-        let wi = m.transpose() * DMatrix::from_column_slice(N_INTRINSIC, 6, n.w[i].as_slice());
-        s -= &wi * DMatrix::from_column_slice(6, 6, vi_inv.as_slice()) * wi.transpose();
-        vinv.push(vi_inv);
-        ws.push(wi);
-    }
-    let s_inv =
-        s.clone()
-            .cholesky()
-            .map(|c| c.inverse())
-            .ok_or_else(|| CalibError::Undetermined {
-                params: weakest_parameters(&s, &map.names)
-                    .iter()
-                    .map(|n| n.to_string())
-                    .collect(),
-            })?;
-    let covariance = &s_inv * sigma2;
-    let full_cov = m * &covariance * m.transpose();
-    let mut std_dev = [0.0; N_INTRINSIC];
-    let mut estimated = [false; N_INTRINSIC];
-    for k in 0..N_INTRINSIC {
-        estimated[k] = m.row(k).iter().any(|&x| x != 0.0);
-        std_dev[k] = full_cov[(k, k)].max(0.0).sqrt();
-    }
+    let marginal = n.marginal(
+        m_res,
+        |i| problem.views[i].name.clone(),
+        |s| CalibError::Undetermined {
+            params: weakest_parameters(s, &map.names)
+                .iter()
+                .map(|n| n.to_string())
+                .collect(),
+        },
+    )?;
+    let (std_dev, estimated) = map.std_dev(&marginal.covariance);
 
     let mut views = Vec::with_capacity(problem.views.len());
     for (i, v) in problem.views.iter().enumerate() {
@@ -894,10 +638,7 @@ fn finish(
                 count += 1;
             }
         }
-        let vi = DMatrix::from_column_slice(6, 6, vinv[i].as_slice());
-        // Cov_i = σ² (V⁻¹ + V⁻¹ Wᵀ S⁻¹ W V⁻¹)
-        let wv = &ws[i] * &vi; // p×6
-        let cov_pose = (&vi + wv.transpose() * &s_inv * &wv) * sigma2;
+        let (rotation_std_rad, translation_std) = marginal.pose_std(&n, i);
         views.push(ViewResult {
             name: v.name.clone(),
             cam_from_rig: poses[i],
@@ -908,16 +649,8 @@ fn finish(
             },
             n_points: count,
             outliers,
-            rotation_std_rad: [
-                cov_pose[(0, 0)].max(0.0).sqrt(),
-                cov_pose[(1, 1)].max(0.0).sqrt(),
-                cov_pose[(2, 2)].max(0.0).sqrt(),
-            ],
-            translation_std: [
-                cov_pose[(3, 3)].max(0.0).sqrt(),
-                cov_pose[(4, 4)].max(0.0).sqrt(),
-                cov_pose[(5, 5)].max(0.0).sqrt(),
-            ],
+            rotation_std_rad,
+            translation_std,
         });
     }
     Ok(Calibration {
@@ -925,13 +658,13 @@ fn finish(
         views,
         rms_px: (n.ssr / m_res as f64).sqrt(),
         rms_reprojection_px: (n.ssr / n_points as f64).sqrt(),
-        sigma_px: sigma2.sqrt(),
+        sigma_px: marginal.sigma2.sqrt(),
         free_params: map.names.clone(),
-        covariance,
+        covariance: marginal.covariance,
         std_dev,
         estimated,
         n_points,
-        n_params: p_total,
+        n_params: n.n_params(),
         iterations,
         termination,
         init_method,

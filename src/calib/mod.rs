@@ -1,7 +1,9 @@
 //! The solvers: normalised DLT, RQ decomposition, planar homographies and Zhang's closed form
 //! ([`linear`]), initialisation of a multi-view problem ([`init`]), and Levenberg–Marquardt refinement
-//! with parameter uncertainty ([`solve()`]); the correspondence file format read by `cubecal solve`
-//! ([`observations`]).
+//! with parameter uncertainty ([`solve()`], and with the rig's geometry: [`solve_rig`]). Both refinements
+//! run on one Levenberg–Marquardt machinery (`lm_core.rs`: a shared parameter block plus a pose block per
+//! view, solved by the Schur complement), which depends on nothing else in `calib` but [`CalibError`].
+//! The correspondence file format read by `cubecal solve` is [`observations`].
 //!
 //! Hand-written rather than taken from a crate: the refinement needs the block (Schur complement)
 //! structure of a calibration problem, the exact OpenCV distortion model with analytic Jacobians, parameter
@@ -15,6 +17,7 @@ pub mod determined;
 pub mod init;
 pub mod linear;
 mod lm;
+mod lm_core;
 pub mod observations;
 pub mod pose;
 pub mod report;
@@ -24,7 +27,8 @@ pub use determined::{
     SIGNIFICANCE_SIGMAS, UNDETERMINED_EFFECT_PX, UndeterminedParam, insignificant_at_border,
     undetermined_parameters,
 };
-pub use lm::{Calibration, Fix, Loss, SolveOptions, Termination, ViewResult, solve, solve_from};
+pub use lm::{Calibration, Fix, SolveOptions, ViewResult, solve, solve_from};
+pub use lm_core::{Loss, Termination};
 pub use rigrefine::{
     FaceCorrection, NoiseCorrelation, RigCalibration, RigPoint, RigRefineOptions, RigView,
     inflate_for_neighbour_correlation, solve_rig,

@@ -21,12 +21,9 @@
 //! ## Normal equations
 //! The *shared* block is the free intrinsics plus six parameters per refined face (≤ 13 + 6·(F − 1);
 //! 25 for a three-face cube); it plays the role the intrinsics play in [`super::solve`]. The normal matrix
-//! keeps its arrow shape, so each step is the same Schur complement: a dense q×q solve plus 6×6 blocks per
-//! view. A point touches only the intrinsics and its own face's block, so the accumulation updates only
-//! those sub-blocks.
-//!
-//! Written beside `lm.rs` instead of generalising it: that solver's shared block is a fixed 13×13 static
-//! matrix on its hot path; this one's is dynamic. Both share the parameter map, the fixes and the losses.
+//! keeps its arrow shape, so the problem hands its blocks to the Levenberg–Marquardt machinery that
+//! [`super::solve`] uses too (`lm_core.rs`: Schur complement, damping loop, covariance). A point touches
+//! only the intrinsics and its own face's block, so the accumulation updates only those sub-blocks.
 //!
 //! ## When the data do not determine the rig
 //! A face's pose relative to the reference is seen only in views that show it together with an already
@@ -43,22 +40,24 @@
 //! square size, a board that is not flat: no rigid motion explains it) is refused with
 //! [`CalibError::RigMismatch`], naming the face.
 
-use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, SMatrix, SVector, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Rotation3, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 use tracing::{debug, info};
 
 use super::init::{InitMethod, initialise};
-use super::lm::{ParamMap, apply_fixes, skew_matrix};
+use super::lm::{ParamMap, apply_fixes};
+#[cfg(test)]
+use super::lm_core::Vec6;
+use super::lm_core::{
+    BlockProblem, Mat2x6, Normal, Step, levenberg_marquardt, rigid_jacobian, update_poses,
+    update_rigid,
+};
 use super::{
     CalibError, Calibration, Correspondence, Loss, SolveOptions, Termination, View, ViewResult,
     validate_views,
 };
 use crate::camera::{Camera, N_INTRINSIC, Pose};
 use crate::rig::{CornerId, Face, Rig};
-
-type Mat6 = SMatrix<f64, 6, 6>;
-type Vec6 = SVector<f64, 6>;
-type Mat2x6 = SMatrix<f64, 2, 6>;
 
 /// One observed rig corner: which corner, and where it was seen (px, centre convention).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -418,17 +417,8 @@ fn point_jacobians(
     let xr = pose.rotation * xf;
     let xc = xr + pose.translation;
     let (proj, j_int, j_pt) = camera.project_cam_with_jacobians(&xc)?;
-    let mut j_pose = Mat2x6::zeros();
-    j_pose
-        .fixed_view_mut::<2, 3>(0, 0)
-        .copy_from(&(-(j_pt * skew_matrix(&xr))));
-    j_pose.fixed_view_mut::<2, 3>(0, 3).copy_from(&j_pt);
-    let j_rig_pt = j_pt * pose.rotation.matrix();
-    let mut j_face = Mat2x6::zeros();
-    j_face
-        .fixed_view_mut::<2, 3>(0, 0)
-        .copy_from(&(-(j_rig_pt * skew_matrix(&arm))));
-    j_face.fixed_view_mut::<2, 3>(0, 3).copy_from(&j_rig_pt);
+    let j_pose = rigid_jacobian(&j_pt, &xr);
+    let j_face = rigid_jacobian(&(j_pt * pose.rotation.matrix()), &arm);
     Ok((proj - uv, j_int, j_pose, j_face))
 }
 
@@ -447,6 +437,8 @@ struct Problem<'a> {
     centres: Vec<Vector3<f64>>,
     /// `slot[f]`: offset of face f's six parameters in the shared vector, if refined.
     slot: Vec<Option<usize>>,
+    /// The free intrinsics.
+    map: ParamMap,
     /// Free intrinsics: column k of the map as `(row, coefficient)` entries.
     map_cols: Vec<Vec<(usize, f64)>>,
     /// Size of the shared block (free intrinsics + 6 per refined face).
@@ -459,24 +451,6 @@ struct State {
     camera: Camera,
     poses: Vec<Pose>,
     faces: Vec<FaceState>,
-}
-
-struct Normal {
-    /// Shared block (q×q, lower triangle accumulated, then symmetrised).
-    u: DMatrix<f64>,
-    g_c: DVector<f64>,
-    v: Vec<Mat6>,
-    /// Shared × view blocks (q×6).
-    w: Vec<DMatrix<f64>>,
-    g_p: Vec<Vec6>,
-    cost: f64,
-    wssr: f64,
-    ssr: f64,
-}
-
-struct Step {
-    d_c: DVector<f64>,
-    d_p: Vec<Vec6>,
 }
 
 impl Problem<'_> {
@@ -494,6 +468,42 @@ impl Problem<'_> {
         let x = c + fs.rotation * (o.xnom - c) + fs.translation;
         s.camera.project(&s.poses[i], &x).ok().map(|p| p - o.uv)
     }
+}
+
+/// Add one residual row's shared part `ar` (at the shared indices `idx`; pose part `b`, weight `wgt`,
+/// residual `r`) to the lower triangle of `U`, to `W_i` and to `g_c`. A function of its own so that the
+/// compiler knows the three blocks do not alias (the hot loop of the rig refinement).
+#[allow(clippy::too_many_arguments)]
+fn add_shared_row(
+    u: &mut DMatrix<f64>,
+    w: &mut DMatrix<f64>,
+    g_c: &mut DVector<f64>,
+    idx: &[usize],
+    ar: &[f64],
+    b: &Vector6<f64>,
+    wgt: f64,
+    r: f64,
+) {
+    for (x, &gx) in idx.iter().enumerate() {
+        let wa = wgt * ar[x];
+        for (y, &gy) in idx.iter().enumerate().take(x + 1) {
+            u[(gx, gy)] += wa * ar[y];
+        }
+        for k in 0..6 {
+            w[(gx, k)] += wa * b[k];
+        }
+        g_c[gx] += wa * r;
+    }
+}
+
+/// The rig problem: the shared block is the free intrinsics followed by six parameters per refined face.
+impl BlockProblem for Problem<'_> {
+    type State = State;
+    const SINGULAR: &'static str = "the normal equations of the rig refinement are singular";
+
+    fn n_residuals(&self) -> usize {
+        2 * self.n_points()
+    }
 
     fn cost(&self, s: &State) -> Option<f64> {
         let mut cost = 0.0;
@@ -505,18 +515,11 @@ impl Problem<'_> {
         cost.is_finite().then_some(cost)
     }
 
+    /// A point touches only the intrinsics and its own face's block, so only those sub-blocks of the
+    /// shared rows are accumulated.
     fn linearise(&self, s: &State) -> Result<Normal, CalibError> {
         let (p, q, nv) = (self.p(), self.q, self.obs.len());
-        let mut n = Normal {
-            u: DMatrix::zeros(q, q),
-            g_c: DVector::zeros(q),
-            v: vec![Mat6::zeros(); nv],
-            w: vec![DMatrix::zeros(q, 6); nv],
-            g_p: vec![Vec6::zeros(); nv],
-            cost: 0.0,
-            wssr: 0.0,
-            ssr: 0.0,
-        };
+        let mut n = Normal::zeros(q, nv);
         // Compact shared Jacobian row: the p free intrinsics, then (if refined) the face's six.
         let mut idx: Vec<usize> = Vec::with_capacity(p + 6);
         let mut a = [[0.0; N_INTRINSIC + 6]; 2];
@@ -552,180 +555,51 @@ impl Problem<'_> {
                         }
                     }
                 }
-                let norm = r.norm();
-                let wgt = self.loss.weight(norm);
-                n.cost += self.loss.rho(norm);
-                n.ssr += norm * norm;
-                n.wssr += wgt * norm * norm;
+                let wgt = n.add_cost(self.loss, r.norm());
                 for row in 0..2 {
-                    let ar = &a[row][..idx.len()];
                     let b = j_pose.row(row).transpose();
-                    for (x, &gx) in idx.iter().enumerate() {
-                        let wa = wgt * ar[x];
-                        for (y, &gy) in idx.iter().enumerate().take(x + 1) {
-                            n.u[(gx, gy)] += wa * ar[y];
-                        }
-                        for k in 0..6 {
-                            n.w[i][(gx, k)] += wa * b[k];
-                        }
-                        n.g_c[gx] += wa * r[row];
-                    }
-                    n.v[i].syger(wgt, &b, &b, 1.0);
-                    n.g_p[i].axpy(wgt * r[row], &b, 1.0);
+                    add_shared_row(
+                        &mut n.u,
+                        &mut n.w[i],
+                        &mut n.g_c,
+                        &idx,
+                        &a[row][..idx.len()],
+                        &b,
+                        wgt,
+                        r[row],
+                    );
+                    n.add_pose_row(i, wgt, &b, r[row]);
                 }
             }
         }
-        n.u.fill_upper_triangle_with_lower_triangle();
-        for v in &mut n.v {
-            v.fill_upper_triangle_with_lower_triangle();
-        }
+        n.fill_upper_triangles();
         Ok(n)
     }
 
     fn apply(&self, s: &State, step: &Step) -> State {
-        let mut camera = s.camera.clone();
-        for (k, col) in self.map_cols.iter().enumerate() {
-            for &(e, c) in col {
-                camera.params[e] += c * step.d_c[k];
-            }
-        }
-        let poses = s
-            .poses
-            .iter()
-            .zip(&step.d_p)
-            .map(|(p, d)| Pose {
-                rotation: Rotation3::new(Vector3::new(d[0], d[1], d[2])) * p.rotation,
-                translation: p.translation + Vector3::new(d[3], d[4], d[5]),
-            })
-            .collect();
+        let d_c = step.d_c.as_slice();
         let faces = s
             .faces
             .iter()
             .zip(&self.slot)
             .map(|(f, sl)| match sl {
                 Some(sl) => {
-                    let d = step.d_c.rows(*sl, 6);
+                    let (rotation, translation) =
+                        update_rigid(&f.rotation, &f.translation, &d_c[*sl..*sl + 6]);
                     FaceState {
-                        rotation: Rotation3::new(Vector3::new(d[0], d[1], d[2])) * f.rotation,
-                        translation: f.translation + Vector3::new(d[3], d[4], d[5]),
+                        rotation,
+                        translation,
                     }
                 }
                 None => *f,
             })
             .collect();
         State {
-            camera,
-            poses,
+            camera: self.map.step(&s.camera, d_c),
+            poses: update_poses(&s.poses, &step.d_p),
             faces,
         }
     }
-}
-
-/// Solve `(A + λD) δ = −g` by the Schur complement on the shared block.
-fn solve_step(n: &Normal, lambda: f64) -> Option<Step> {
-    let q = n.u.nrows();
-    let mut s = n.u.clone();
-    for k in 0..q {
-        s[(k, k)] += lambda * n.u[(k, k)].max(1e-12);
-    }
-    let mut rhs = -&n.g_c;
-    let mut vinv = Vec::with_capacity(n.v.len());
-    for i in 0..n.v.len() {
-        let mut vi = n.v[i];
-        for k in 0..6 {
-            vi[(k, k)] += lambda * n.v[i][(k, k)].max(1e-12);
-        }
-        let vi_inv = vi.cholesky()?.inverse();
-        let wv = &n.w[i] * vi_inv;
-        s -= &wv * n.w[i].transpose();
-        rhs += &wv * n.g_p[i];
-        vinv.push(vi_inv);
-    }
-    let d_c = s.cholesky()?.solve(&rhs);
-    let d_p = (0..n.v.len())
-        .map(|i| {
-            let wt_dc: Vec6 = n.w[i].tr_mul(&d_c).fixed_rows::<6>(0).into_owned();
-            vinv[i] * (-n.g_p[i] - wt_dc)
-        })
-        .collect();
-    Some(Step { d_c, d_p })
-}
-
-fn predicted_decrease(n: &Normal, step: &Step, lambda: f64) -> f64 {
-    let mut dd = 0.0;
-    let mut gd = n.g_c.dot(&step.d_c);
-    for k in 0..n.u.nrows() {
-        dd += n.u[(k, k)].max(1e-12) * step.d_c[k] * step.d_c[k];
-    }
-    for i in 0..n.v.len() {
-        for k in 0..6 {
-            dd += n.v[i][(k, k)].max(1e-12) * step.d_p[i][k] * step.d_p[i][k];
-        }
-        gd += n.g_p[i].dot(&step.d_p[i]);
-    }
-    0.5 * (lambda * dd - gd)
-}
-
-/// Levenberg–Marquardt with Nielsen's damping update, as in [`super::solve`].
-fn levenberg_marquardt(
-    problem: &Problem<'_>,
-    mut state: State,
-    max_iterations: usize,
-) -> Result<(State, usize, Termination), CalibError> {
-    let mut lambda = 1e-3;
-    let mut nu = 2.0;
-    let mut normal = problem.linearise(&state)?;
-    let zero_cost = 1e-26 * (2 * problem.n_points()) as f64;
-    let mut last_rel_decrease = f64::INFINITY;
-    for iteration in 1..=max_iterations {
-        if normal.cost <= zero_cost {
-            return Ok((state, iteration - 1, Termination::ZeroResidual));
-        }
-        let Some(step) = solve_step(&normal, lambda) else {
-            lambda *= nu;
-            nu *= 2.0;
-            if lambda > 1e20 {
-                return Err(CalibError::Unobservable {
-                    reason: "the normal equations of the rig refinement are singular".into(),
-                });
-            }
-            continue;
-        };
-        let pred = predicted_decrease(&normal, &step, lambda);
-        if pred <= 1e-12 * normal.cost {
-            return Ok((state, iteration, Termination::SmallPredictedDecrease));
-        }
-        let trial = problem.apply(&state, &step);
-        match problem.cost(&trial) {
-            Some(c) if c < normal.cost => {
-                let rho = (normal.cost - c) / pred;
-                last_rel_decrease = (normal.cost - c) / normal.cost;
-                lambda *= (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0);
-                nu = 2.0;
-                state = trial;
-                normal = problem.linearise(&state)?;
-                debug!(
-                    iteration,
-                    cost = normal.cost,
-                    lambda,
-                    "rig LM step accepted"
-                );
-            }
-            _ => {
-                lambda *= nu;
-                nu *= 2.0;
-                if lambda > 1e16 {
-                    let t = if last_rel_decrease < 1e-6 {
-                        Termination::NoFurtherDecrease
-                    } else {
-                        Termination::Stalled
-                    };
-                    return Ok((state, iteration, t));
-                }
-            }
-        }
-    }
-    Ok((state, max_iterations, Termination::MaxIterations))
 }
 
 fn check_options(opts: &RigRefineOptions, rig: &Rig) -> Result<(), CalibError> {
@@ -1024,6 +898,7 @@ fn solve_rig_unchecked(
             .collect(),
         centres: rig.faces.iter().map(face_centre).collect(),
         slot,
+        map,
         map_cols,
         q,
         loss: opts.solve.loss,
@@ -1048,7 +923,6 @@ fn solve_rig_unchecked(
     );
     finish(
         &problem,
-        &map,
         state,
         iterations,
         termination,
@@ -1062,7 +936,6 @@ fn solve_rig_unchecked(
 #[allow(clippy::too_many_arguments)]
 fn finish(
     problem: &Problem<'_>,
-    map: &ParamMap,
     state: State,
     iterations: usize,
     termination: Termination,
@@ -1072,49 +945,26 @@ fn finish(
     views: &[RigView],
 ) -> Result<RigCalibration, CalibError> {
     let rig = problem.rig;
+    let map = &problem.map;
     let n = problem.linearise(&state)?;
     let n_points = problem.n_points();
     let m_res = 2 * n_points;
     let nv = problem.obs.len();
-    let p_total = problem.q + 6 * nv;
-    if m_res <= p_total {
-        return Err(CalibError::Unobservable {
-            reason: format!("{m_res} residuals for {p_total} parameters"),
-        });
-    }
-    let sigma2 = n.wssr / (m_res - p_total) as f64;
-    let mut s = n.u.clone();
-    let mut vinv = Vec::with_capacity(nv);
-    for i in 0..nv {
-        let vi_inv =
-            n.v[i]
-                .cholesky()
-                .map(|c| c.inverse())
-                .ok_or_else(|| CalibError::Unobservable {
-                    reason: format!("the pose of view '{}' is not determined", problem.names[i]),
-                })?;
-        s -= &n.w[i] * vi_inv * n.w[i].transpose();
-        vinv.push(vi_inv);
-    }
-    let s_inv = s
-        .cholesky()
-        .map(|c| c.inverse())
-        .ok_or_else(|| CalibError::Unobservable {
+    let marginal = n.marginal(
+        m_res,
+        |i| problem.names[i].clone(),
+        |_| CalibError::Unobservable {
             reason: format!(
                 "the intrinsics ({}) and the rig's face poses are not all constrained by these views",
                 map.names.join(", ")
             ),
-        })?;
-    let p = problem.p();
-    let cov_shared = &s_inv * sigma2;
-    let covariance = cov_shared.view((0, 0), (p, p)).into_owned();
-    let full_cov = &map.m * &covariance * map.m.transpose();
-    let mut std_dev = [0.0; N_INTRINSIC];
-    let mut estimated = [false; N_INTRINSIC];
-    for k in 0..N_INTRINSIC {
-        estimated[k] = map.m.row(k).iter().any(|&x| x != 0.0);
-        std_dev[k] = full_cov[(k, k)].max(0.0).sqrt();
-    }
+        },
+    )?;
+    let cov_shared = &marginal.covariance;
+    let covariance = cov_shared
+        .view((0, 0), (problem.p(), problem.p()))
+        .into_owned();
+    let (std_dev, estimated) = map.std_dev(&covariance);
 
     // Per-view results and per-face residuals.
     let nf = rig.faces.len();
@@ -1130,18 +980,15 @@ fn finish(
                 face_n[o.face] += 1;
             }
         }
-        let vi = DMatrix::from_column_slice(6, 6, vinv[i].as_slice());
-        let wv = &n.w[i] * &vi;
-        let cov_pose = (&vi + wv.transpose() * &s_inv * &wv) * sigma2;
-        let sd = |k: usize| cov_pose[(k, k)].max(0.0).sqrt();
+        let (rotation_std_rad, translation_std) = marginal.pose_std(&n, i);
         view_results.push(ViewResult {
             name: problem.names[i].clone(),
             cam_from_rig: state.poses[i],
             rms_px: (ssr / (2 * obs.len()).max(1) as f64).sqrt(),
             n_points: obs.len(),
             outliers: Vec::new(),
-            rotation_std_rad: [sd(0), sd(1), sd(2)],
-            translation_std: [sd(3), sd(4), sd(5)],
+            rotation_std_rad,
+            translation_std,
         });
     }
 
@@ -1195,13 +1042,13 @@ fn finish(
         views: view_results,
         rms_px: (n.ssr / m_res as f64).sqrt(),
         rms_reprojection_px: (n.ssr / n_points as f64).sqrt(),
-        sigma_px: sigma2.sqrt(),
+        sigma_px: marginal.sigma2.sqrt(),
         free_params: map.names.clone(),
         covariance,
         std_dev,
         estimated,
         n_points,
-        n_params: p_total,
+        n_params: n.n_params(),
         iterations,
         termination,
         init_method,
