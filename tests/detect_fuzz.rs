@@ -8,7 +8,8 @@
 //! face may be reported on the cube rig (a face of a 3D rig placed on the wrong face, or shifted
 //! against the others, changes its geometry), and none on the flat board either, with one exception
 //! that changes nothing: a complete grid of the board's size whose extent is unproven only because
-//! the frame border cuts the next line (`FaceDetection::unproven_extent`). If the pattern in the
+//! the frame border cuts the next line, or whose orientation a 180°-symmetric board leaves open
+//! (`FaceDetection::ambiguous_pose`). If the pattern in the
 //! frame is a bigger checkerboard, its labels are shifted within its plane, which moves that view's
 //! pose and nothing else: a planar view constrains the camera through its homography up to a
 //! similarity of the plane. Such a face must be the whole board (every corner, one lattice) and its
@@ -122,15 +123,13 @@ impl Fuzz {
                     let harmless = |f: &cubecal::detect::label::FaceDetection| {
                         let face = &rig.faces[f.face];
                         rig.faces.len() == 1
-                            && f.unproven_extent
-                                .as_deref()
-                                .is_some_and(|why| why.contains("frame border"))
+                            && f.ambiguous_pose.is_some()
                             && f.corners.len() == face.rows * face.cols
                     };
                     for f in det.faces.iter().filter(|f| harmless(f)) {
                         eprintln!(
                             "{label}: flat board labelled with its pose flagged: {:?}",
-                            f.unproven_extent
+                            f.ambiguous_pose
                         );
                     }
                     if det.faces.iter().any(|f| !harmless(f)) {
@@ -459,7 +458,7 @@ fn boards_cut_by_the_border_are_not_labelled_as_faces() {
         // flagged for it, which `check` has held to the module doc's exception.
         let flagged = dets
             .iter()
-            .any(|d| d.faces.iter().any(|f| f.unproven_extent.is_some()));
+            .any(|d| d.faces.iter().any(|f| f.ambiguous_pose.is_some()));
         if !flagged && !reasons.iter().any(|r| r.contains("grid may continue")) {
             fuzz.failures
                 .push(format!("{case}: not rejected for its extent: {reasons:?}"));

@@ -65,7 +65,7 @@ fn boards_cut_by_the_border_are_labelled_and_every_camera_matches_its_reference(
         // A face is labelled whole: every one of its 28 corners, never a part of it.
         assert_eq!(face.corners.len(), 28, "{name}");
         labelled += 1;
-        if let Some(why) = &face.unproven_extent {
+        if let Some(why) = &face.ambiguous_pose {
             flagged += 1;
             assert!(why.contains("frame border"), "{name}: {why}");
         }

@@ -115,10 +115,10 @@ struct CornerRef<'a>(#[serde(with = "CornerJson")] &'a LabelledCorner);
 struct FaceJson<'a> {
     face: &'a str,
     corners: Vec<CornerRef<'a>>,
-    /// Labelled though its extent is not proven (one-face rig, cut only by the frame border): the
-    /// view's pose is not trusted, its intrinsics constraints are.
+    /// Labels certain only up to a shift or turn within the plane (one-face rig: cut only by the frame
+    /// border, or a lone 180°-symmetric board): the view's pose is not trusted, its corners are.
     #[serde(skip_serializing_if = "Option::is_none")]
-    unproven_extent: Option<&'a str>,
+    ambiguous_pose: Option<&'a str>,
 }
 
 #[derive(Serialize)]
@@ -164,7 +164,7 @@ impl<'a> ImageJson<'a> {
                 .map(|f| FaceJson {
                     face: face_name(rig, f.face),
                     corners: f.corners.iter().map(CornerRef).collect(),
-                    unproven_extent: f.unproven_extent.as_deref(),
+                    ambiguous_pose: f.ambiguous_pose.as_deref(),
                 })
                 .collect(),
             rejected: det
@@ -303,8 +303,10 @@ fn print_human(p: &Processed, rig: &Rig) -> anyhow::Result<()> {
             face_name(rig, f.face),
             count(f.corners.len(), "corner")
         )?;
-        if let Some(why) = &f.unproven_extent {
-            outln!("    pose not trusted (extent unproven, labelled for a one-face rig): {why}")?;
+        if let Some(why) = &f.ambiguous_pose {
+            outln!(
+                "    pose not trusted (labels certain up to a shift or turn in the plane): {why}"
+            )?;
         }
     }
     for r in &det.rejected {

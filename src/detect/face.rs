@@ -27,12 +27,13 @@ pub struct FaceDetection {
     pub corners: Vec<LabelledCorner>,
     /// White-minus-black mean intensity that decided the orientation (grey levels).
     pub colour_contrast: f64,
-    /// Set when the face was labelled although its extent is not proven, with the reason: on a rig of
-    /// one face, a grid of exactly the face's size whose only missing proof is the frame border.
-    /// Were it part of a bigger board, its labels would be shifted within the plane, which changes
-    /// this view's pose only, never the intrinsics (a planar view constrains the camera through its
-    /// homography up to a similarity of the plane); so the view's pose is flagged, not trusted.
-    pub unproven_extent: Option<String>,
+    /// Set, with the reason, when the face's labels are certain only up to a shift or turn within
+    /// its plane; only on a rig of one face: a grid of exactly the face's size whose only missing
+    /// proof of extent is the frame border (were it part of a bigger board, its labels would be
+    /// shifted), or a lone 180°-symmetric face whose orientation its colours cannot tell. Either
+    /// changes this view's pose only, never the intrinsics (a planar view constrains the camera
+    /// through its homography up to a similarity of the plane); so the pose is flagged, not trusted.
+    pub ambiguous_pose: Option<String>,
 }
 
 /// Why a grid (or the frame) was not used.

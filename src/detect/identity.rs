@@ -18,7 +18,9 @@
 //!
 //! When the geometry cannot decide (one grid, or coplanar grids, or no clear winner), a grid is
 //! labelled only if its size and colours leave exactly one candidate; the others are rejected with
-//! the reason.
+//! the reason — except a lone 180°-symmetric face on a rig of one face: its candidates differ by a
+//! turn within its plane, which moves the view's pose and never the intrinsics, so it is labelled
+//! with (0, 0) nearest the image's top-left and its pose flagged ([`FaceDetection::ambiguous_pose`]).
 
 use image::GrayImage;
 use nalgebra::{Matrix3x4, Vector2, Vector3};
@@ -189,8 +191,8 @@ pub(super) struct Whole {
     /// Mappings (face, quarter turns) with the white-minus-black contrast they read.
     pub(super) candidates: Vec<(Mapping, f64)>,
     /// Why the grid's extent is not proven, when it is labelled all the same (see
-    /// [`FaceDetection::unproven_extent`]).
-    pub(super) unproven_extent: Option<String>,
+    /// [`FaceDetection::ambiguous_pose`]).
+    pub(super) ambiguous_pose: Option<String>,
 }
 
 /// The mappings whose face has the grid's size (directly or turned by 90°).
@@ -299,7 +301,7 @@ fn detection(rig: &Rig, w: &Whole, m: Mapping, contrast: f64) -> (FaceDetection,
             face: m.face,
             corners,
             colour_contrast: contrast,
-            unproven_extent: w.unproven_extent.clone(),
+            ambiguous_pose: w.ambiguous_pose.clone(),
         },
         d,
         m,
@@ -449,11 +451,37 @@ pub(super) fn identify(rig: &Rig, wholes: Vec<Whole>) -> (Vec<FaceDetection>, Ve
         None => {
             for w in wholes.iter().filter(|w| w.candidates.len() > 1) {
                 let faces = names(rig, w.candidates.iter().map(|c| c.0.face));
-                let reason = if w
+                let one_face = w
                     .candidates
                     .iter()
-                    .all(|c| c.0.face == w.candidates[0].0.face)
-                {
+                    .all(|c| c.0.face == w.candidates[0].0.face);
+                if one_face && rig.faces.len() == 1 {
+                    // A lone board whose orientation its colours cannot tell: every candidate is
+                    // the same lattice turned within the board's plane (handedness is fixed, so
+                    // never mirrored), which moves this view's pose and never the intrinsics. The
+                    // turn that puts (0, 0) nearest the image's top-left is taken, pose flagged.
+                    let Some(&(m, contrast)) = w.candidates.iter().min_by(|a, b| {
+                        let at = |m: Mapping| {
+                            let d = w.dense.turned(m.turns);
+                            let uv = d.at(0, 0);
+                            uv.x + uv.y
+                        };
+                        at(a.0).total_cmp(&at(b.0))
+                    }) else {
+                        continue;
+                    };
+                    let mut f = detection(rig, w, m, contrast);
+                    let why = format!(
+                        "face '{faces}' is 180°-symmetric and alone: its orientation is not decided, the turn putting (0, 0) nearest the image's top-left is taken"
+                    );
+                    f.0.ambiguous_pose = Some(match f.0.ambiguous_pose.take() {
+                        Some(other) => format!("{why}; {other}"),
+                        None => why,
+                    });
+                    found.push(f);
+                    continue;
+                }
+                let reason = if one_face {
                     format!(
                         "face '{faces}' is 180°-symmetric: its orientation cannot be decided from one face"
                     )

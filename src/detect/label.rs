@@ -9,7 +9,7 @@
 //! 3. **Extent** (`extent`): the size only means something if the board ends where the
 //!    grid does. On a rig of one face, a grid of the face's size whose only missing proof is the
 //!    frame border is labelled all the same, its pose flagged
-//!    ([`FaceDetection::unproven_extent`]): a shift of a planar view's labels within its plane
+//!    ([`FaceDetection::ambiguous_pose`]): a shift of a planar view's labels within its plane
 //!    changes that view's pose, never the intrinsics.
 //! 4. **Identity** (`identity`): the face and its orientation, by square colours and,
 //!    when they leave a choice (faces of equal size, 180°-symmetric faces), by the rig geometry of
@@ -83,7 +83,7 @@ pub fn label(
             partials.push(Partial::new(g, grid_folds, reason));
             continue;
         }
-        let unproven_extent = match extent(img, &dense, folds) {
+        let ambiguous_pose = match extent(img, &dense, folds) {
             Ok(()) => None,
             // One face: a grid of its size cut only by the frame border is the whole board or, if
             // the rig file understates the board, a part of it whose labels are shifted within the
@@ -98,7 +98,7 @@ pub fn label(
             Ok(candidates) => whole.push(Whole {
                 dense,
                 candidates,
-                unproven_extent,
+                ambiguous_pose,
             }),
             Err(reason) => rejected.push(Rejection {
                 reason,

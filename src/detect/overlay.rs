@@ -463,7 +463,7 @@ mod tests {
             face,
             corners,
             colour_contrast: 100.0,
-            unproven_extent: None,
+            ambiguous_pose: None,
         }
     }
 

@@ -182,7 +182,7 @@ mod tests {
                 })
                 .collect(),
             colour_contrast: 100.0,
-            unproven_extent: None,
+            ambiguous_pose: None,
         }
     }
 

@@ -394,7 +394,7 @@ fn place_one(
         face: pl.face,
         corners,
         colour_contrast: contrast,
-        unproven_extent: None,
+        ambiguous_pose: None,
     })
 }
 
@@ -834,7 +834,7 @@ pub(super) fn place_by_edges(
             face: c[k].0.face,
             corners: placed_corners(rig, p, &c[k].0),
             colour_contrast: c[k].1,
-            unproven_extent: None,
+            ambiguous_pose: None,
         })
         .collect();
     // Extent: each face's corners that its grid lacks lie outside the frame (or hug its border).

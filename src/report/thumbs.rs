@@ -59,7 +59,7 @@ pub fn detection_from_view(view: &RawView, rig: &Rig, width: u32, height: u32) -
                 face: fi,
                 corners: vec![corner],
                 colour_contrast: 0.0,
-                unproven_extent: None,
+                ambiguous_pose: None,
             }),
         }
     }
@@ -98,7 +98,7 @@ fn scaled(det: &FrameDetection, s: f64, width: u32, height: u32) -> FrameDetecti
                     })
                     .collect(),
                 colour_contrast: f.colour_contrast,
-                unproven_extent: None,
+                ambiguous_pose: None,
             })
             .collect(),
         rejected: det.rejected.clone(),

@@ -506,14 +506,14 @@ fn examine(
         }
     }
     record.accepted = true;
-    // A remark on an accepted view: its labels may be shifted within the board's plane.
+    // A remark on an accepted view: its labels may be shifted or turned within the board's plane.
     record.reason = det
         .faces
         .iter()
-        .find_map(|f| f.unproven_extent.as_ref())
+        .find_map(|f| f.ambiguous_pose.as_ref())
         .map(|why| {
             format!(
-                "pose not trusted, intrinsics used: {why} (on a one-face rig a shift of the labels within the plane moves only this view's pose)"
+                "pose not trusted, intrinsics used: {why} (on a one-face rig a shift or turn of the labels within the plane moves only this view's pose)"
             )
         });
     Ok(PoseData {

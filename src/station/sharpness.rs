@@ -249,7 +249,7 @@ mod tests {
                 face: 0,
                 corners,
                 colour_contrast: 190.0,
-                unproven_extent: None,
+                ambiguous_pose: None,
             }],
         )
     }
