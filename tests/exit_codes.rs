@@ -209,6 +209,18 @@ const CASES: &[Case] = &[
             "/proc/cubecal-cannot-write",
         ],
     },
+    Case {
+        command: "calibrate",
+        failure: "photos without `--rig` or `--board`, a `--set` without `=` (checked before anything is opened)",
+        code: 2,
+        args: &["calibrate", "--images", FRAME, "--out", "{tmp}/run"],
+    },
+    Case {
+        command: "profile",
+        failure: "store directory missing, no profile for the camera, a profile file unreadable, malformed or of a newer format",
+        code: 3,
+        args: &["profile", "list", "--store", "{tmp}/no-such-store"],
+    },
 ];
 
 #[test]

@@ -533,8 +533,15 @@ fn profile_history_is_plotted_at_each_versions_distance_in_sigma() {
     }
 
     // The SVG: one marker per (parameter, version) with a value — 9 × 4 minus k3 at v1 — in the
-    // parameter's colour, at x = version and y = its Δ/σ.
+    // parameter's colour, at x = version (offset by the parameter's dodge, so that equal values sit
+    // side by side) and y = its Δ/σ.
     let g = history.geometry;
+    let figure = plots::HistoryFigure {
+        caption: String::new(),
+        versions: Vec::new(),
+        series: report.series.clone(),
+        jump_sigma: 5.0,
+    };
     let circles = elements(&history.svg, "circle");
     assert_eq!(circles.len(), 35);
     for (k, w) in want.iter().enumerate() {
@@ -547,7 +554,7 @@ fn profile_history_is_plotted_at_each_versions_distance_in_sigma() {
             .collect();
         assert_eq!(mine.len(), expected.len(), "{}", order[k]);
         for (c, (i, z)) in mine.iter().zip(&expected) {
-            let (x, y) = g.to_px(*i as f64, *z);
+            let (x, y) = g.to_px(*i as f64 + figure.dodge(k), *z);
             assert!((num(c, "cx") - x).abs() <= 1.0, "{} v{i} x", order[k]);
             assert!(
                 (num(c, "cy") - y).abs() <= 1.0,
@@ -573,7 +580,7 @@ fn profile_history_is_plotted_at_each_versions_distance_in_sigma() {
     let (_, ym5) = g.to_px(0.0, -5.0);
     let dashed: Vec<f64> = elements(&history.svg, "polyline")
         .into_iter()
-        .filter(|l| l.get("stroke").is_some_and(|s| s == "#D52828"))
+        .filter(|l| l.get("stroke").is_some_and(|s| *s == hex(plots::JUMP)))
         .map(|l| {
             let p: Vec<f64> = l["points"]
                 .split([' ', ','])

@@ -553,9 +553,9 @@ fn sigterm_mid_run_stops_within_5_s_without_touching_profiles() {
         &std::fs::read(run_dir.join("session").join("manifest.json")).unwrap(),
     )
     .unwrap();
-    assert_eq!(manifest["config"]["complete"], serde_json::json!(false));
+    assert_eq!(manifest["complete"], serde_json::json!(false));
     assert!(
-        manifest["config"]["ended_by"]
+        manifest["ended_by"]
             .as_str()
             .is_some_and(|s| s.contains("interrupted")),
         "{}",

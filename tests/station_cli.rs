@@ -185,7 +185,7 @@ fn sigterm_mid_run_exits_130_with_the_session_marked_incomplete() {
     assert!(rest.iter().any(|l| l.contains("interrupted")), "{rest:?}");
     let manifest: serde_json::Value =
         serde_json::from_slice(&std::fs::read(run.join("session/manifest.json")).unwrap()).unwrap();
-    assert_eq!(manifest["config"]["complete"], serde_json::json!(false));
+    assert_eq!(manifest["complete"], serde_json::json!(false));
     assert!(!run.join("profile.json").exists());
 }
 

@@ -18,7 +18,6 @@
 //! the checksum (truncated, edited), is refused naming that file. [`Session::open`] verifies every frame
 //! up front, so a replay never fails half-way through because of a damaged file.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -158,6 +157,22 @@ pub struct Manifest {
     #[serde(flatten)]
     pub header: SessionHeader,
     pub frames: Vec<FrameEntry>,
+    /// Whether the recording ran to its end (`false`: a fault or a signal stopped it). Absent in
+    /// sessions recorded before it was kept at the top level (and by `cubecal record`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub complete: Option<bool>,
+    /// What ended an incomplete recording (the error's message).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ended_by: Option<String>,
+}
+
+impl Manifest {
+    /// Whether the recording was ended early: `complete: false` at the top level, or (sessions of
+    /// earlier versions) under the station config.
+    pub fn incomplete(&self) -> bool {
+        self.complete == Some(false)
+            || self.header.config.get("complete") == Some(&serde_json::Value::Bool(false))
+    }
 }
 
 fn sha256_hex(bytes: &[u8]) -> String {
@@ -178,6 +193,7 @@ pub struct SessionWriter {
     frames: Vec<FrameEntry>,
     queued: usize,
     worker: Option<Worker>,
+    outcome: Option<(bool, Option<String>)>,
 }
 
 type Job = (usize, Frame, Option<f64>);
@@ -247,6 +263,7 @@ impl SessionWriter {
             frames: Vec::new(),
             queued: 0,
             worker: None,
+            outcome: None,
         })
     }
 
@@ -325,6 +342,11 @@ impl SessionWriter {
         &mut self.header
     }
 
+    /// Record how the recording ended, for the manifest's top-level `complete` and `ended_by`.
+    pub fn set_outcome(&mut self, complete: bool, ended_by: Option<String>) {
+        self.outcome = Some((complete, ended_by));
+    }
+
     /// Write the manifest atomically (temp file in the directory, fsync, rename) and return its path.
     pub fn finish(mut self) -> Result<PathBuf, SessionError> {
         if let Some(w) = self.worker.take() {
@@ -345,6 +367,8 @@ impl SessionWriter {
             format_version: FORMAT_VERSION,
             header: self.header,
             frames: self.frames,
+            complete: self.outcome.as_ref().map(|o| o.0),
+            ended_by: self.outcome.and_then(|o| o.1),
         };
         let json = serde_json::to_vec_pretty(&manifest).map_err(|e| SessionError::Write {
             path: path.clone(),
@@ -354,10 +378,8 @@ impl SessionWriter {
             path: path.clone(),
             source: e,
         };
-        let mut tmp = tempfile::NamedTempFile::new_in(&self.dir).map_err(werr)?;
-        tmp.write_all(&json).map_err(werr)?;
-        tmp.as_file().sync_all().map_err(werr)?;
-        tmp.persist(&path).map_err(|e| werr(e.error))?;
+        // An ordinary file like the frames beside it (0644 before the umask), not a private temporary.
+        crate::rig::write_atomic(&path, &json).map_err(werr)?;
         Ok(path)
     }
 }

@@ -35,10 +35,14 @@ pub struct CalibrateArgs {
     /// Turntable: grbl:PORT, zaber:PORT, sim-grbl, sim-zaber, manual or none.
     #[arg(long, value_name = "KIND[:PORT]")]
     pub turntable: Option<String>,
-    /// Rig description (TOML). Default: the config's rig.path, else the bundled cube.
+    /// Rig description (TOML; see README "Rig files"). Default: the config's rig.path, else the
+    /// bundled cube (turntable and synthetic runs; photos need --rig or --board).
     #[arg(long)]
     pub rig: Option<PathBuf>,
-    /// Profile store directory (output.store).
+    #[command(flatten)]
+    pub board: super::BoardArgs,
+    /// Profile store directory (output.store): a passing run's profile is committed there. Without
+    /// it the profile is only RUN_DIR/profile.json (printed with how to store or export it).
     #[arg(long)]
     pub store: Option<PathBuf>,
     /// Run directory to create (output.out). Default: cubecal-runs/<UTC time>.
@@ -68,6 +72,7 @@ impl From<&CalibrateArgs> for RunRequest {
             synthetic: a.synthetic,
             turntable: a.turntable.clone(),
             rig: a.rig.clone(),
+            board: a.board.board(),
             store: a.store.clone(),
             out: a.out.clone(),
             poses: a.poses,
@@ -207,7 +212,7 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
     if out.json {
         print_json(&result)?;
     } else {
-        print_human(&result);
+        print_human(&result, cfg.output.store.as_deref());
     }
     Ok(result.exit_code())
 }
@@ -219,7 +224,9 @@ fn print_json(r: &RunResult) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn print_human(r: &RunResult) {
+/// The run in words. `store` is the profile store the run committed to, if any: without one the
+/// profile is only the run's `profile.json`, and the user is told how to store or export it.
+fn print_human(r: &RunResult, store: Option<&std::path::Path>) {
     let mut o = std::io::stdout().lock();
     let mut w = |s: String| {
         let _ = writeln!(o, "{s}");
@@ -253,8 +260,9 @@ fn print_human(r: &RunResult) {
             sd("cy")
         ));
         w(format!(
-            "  distortion ({}): {:?}",
-            c.distortion.model, c.distortion.coefficients
+            "  distortion ({}): {}",
+            c.distortion.model,
+            super::fmt_distortion(&c.distortion.coefficients, &c.std_dev)
         ));
     }
     for n in &r.notes {
@@ -266,19 +274,33 @@ fn print_human(r: &RunResult) {
     ));
     for c in &r.verdict.checks {
         w(format!(
-            "  [{}] {:<28} {:>12.6}  (limit {:.6})",
+            "  [{}] {:<28} {:>12}  (limit {})",
             if c.pass { "ok" } else { "FAIL" },
             c.name,
-            c.value,
-            c.threshold
+            super::fmt_value(c.value),
+            super::fmt_value(c.threshold)
         ));
         if let Some(h) = &c.hint {
             w(format!("        {h}"));
         }
     }
-    match &r.profile {
-        Some(p) => w(format!("profile: {}", p.display())),
-        None => w("profile: none written".into()),
+    match (&r.profile, store) {
+        (Some(p), Some(s)) => w(format!(
+            "profile: {} (stored in {})",
+            p.display(),
+            s.display()
+        )),
+        (Some(p), None) => {
+            w(format!(
+                "profile: {} (not stored: no --store given)",
+                p.display()
+            ));
+            w(format!(
+                "  to store it per camera, run with --store DIR (and --device-id NAME for photos); to use it elsewhere: cubecal profile export {} --format opencv",
+                p.display()
+            ));
+        }
+        (None, _) => w("profile: none written".into()),
     }
     w(format!("run directory: {}", r.run_dir.display()));
 }

@@ -1,4 +1,4 @@
-//! `cubecal detect --rig RIG.toml IMAGE...`: find and label the rig's faces in image files.
+//! `cubecal detect --rig RIG.toml IMAGE...` (or `--board COLSxROWS --square MM`): find and label the rig's faces in image files.
 //!
 //! Loading, timing and printing only; detection is [`cubecal::detect::detect`] and drawing is
 //! [`cubecal::detect::overlay`].
@@ -27,9 +27,11 @@ use super::{Output, UsageError};
     reasons say why."
 )]
 pub struct DetectArgs {
-    /// Rig description (TOML).
-    #[arg(long)]
-    pub rig: PathBuf,
+    /// Rig description (TOML; see README "Rig files"). Or --board and --square.
+    #[arg(long, required_unless_present = "board")]
+    pub rig: Option<PathBuf>,
+    #[command(flatten)]
+    pub board: super::BoardArgs,
     /// Frames to search (PNG or JPEG, any colour type; converted to 8-bit grey).
     #[arg(required = true, value_name = "IMAGE")]
     pub images: Vec<PathBuf>,
@@ -194,7 +196,23 @@ struct Processed {
 
 pub fn run(args: DetectArgs, out: Output) -> anyhow::Result<u8> {
     // Rig warnings are logged by `Rig::load`; the JSON output has no place for them.
-    let (rig, _warnings) = Rig::load(&args.rig)?;
+    let (rig, _warnings) = match (&args.rig, args.board.board()) {
+        (Some(path), _) => Rig::load(path)?,
+        (None, Some((size, square_mm))) => {
+            let (rig, warnings) = Rig::from_toml_str(
+                &cubecal::rig::board_toml(size, square_mm),
+                &format!("--board {size} --square {square_mm}"),
+            )?;
+            rig.log_warnings(&warnings);
+            (rig, warnings)
+        }
+        (None, None) => {
+            return Err(super::UsageError(
+                "give --rig RIG.toml or --board COLSxROWS --square MM".into(),
+            )
+            .into());
+        }
+    };
     let overlays = match &args.overlay {
         Some(target) => Some(overlay_paths(target, &args.images)?),
         None => None,

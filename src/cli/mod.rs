@@ -77,6 +77,43 @@ enum Command {
     Serve(serve::ServeArgs),
 }
 
+/// A check's value or threshold for people: a count as a count (`11`, not `11.000000`), other values
+/// with up to six decimals and no trailing zeros (`0.3`, `0.000123`).
+pub fn fmt_value(x: f64) -> String {
+    if !x.is_finite() {
+        return x.to_string();
+    }
+    if x.fract() == 0.0 && x.abs() < 1e15 {
+        return format!("{x:.0}");
+    }
+    let s = format!("{x:.6}");
+    let s = s.trim_end_matches('0').trim_end_matches('.');
+    if s == "0" || s == "-0" {
+        // Smaller than six decimals show: keep its significant digits.
+        format!("{x:.3e}")
+    } else {
+        s.to_string()
+    }
+}
+
+/// Distortion coefficients named in OpenCV's order, each to six significant decimals, with σ where
+/// the calibration has one: `k1 -0.281234 ± 0.001234, k2 …`.
+pub fn fmt_distortion(
+    coefficients: &[f64],
+    std_dev: &std::collections::BTreeMap<String, f64>,
+) -> String {
+    const NAMES: [&str; 8] = ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"];
+    coefficients
+        .iter()
+        .zip(NAMES)
+        .map(|(v, name)| match std_dev.get(name) {
+            Some(sd) => format!("{name} {v:.6} ± {sd:.6}"),
+            None => format!("{name} {v:.6} (fixed)"),
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 /// Global output options every subcommand receives.
 #[derive(Debug, Clone, Copy)]
 pub struct Output {
@@ -167,6 +204,31 @@ fn is_broken_pipe(err: &anyhow::Error) -> bool {
 #[derive(Debug, thiserror::Error)]
 #[error("{0}")]
 pub struct UsageError(pub String);
+
+/// `--board COLSxROWS --square MM`: a plain chessboard instead of a rig file (`calibrate`, `detect`;
+/// each of them has a `--rig` this conflicts with).
+#[derive(Debug, Clone, Copy, clap::Args)]
+pub struct BoardArgs {
+    /// A plain chessboard instead of a rig file: inner corners COLSxROWS, as OpenCV counts them
+    /// (9x6 for a board of 10 × 7 squares). Needs --square.
+    #[arg(
+        long,
+        value_name = "COLSxROWS",
+        conflicts_with = "rig",
+        requires = "square"
+    )]
+    pub board: Option<cubecal::rig::BoardSize>,
+    /// The --board's square size in millimetres.
+    #[arg(long, value_name = "MM", requires = "board")]
+    pub square: Option<f64>,
+}
+
+impl BoardArgs {
+    /// The board and its square size, when given (clap requires both together).
+    pub fn board(&self) -> Option<(cubecal::rig::BoardSize, f64)> {
+        self.board.zip(self.square)
+    }
+}
 
 /// A result location the command could not create or write (exit 7, `exit::IO`).
 #[derive(Debug, thiserror::Error)]

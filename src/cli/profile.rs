@@ -2,11 +2,12 @@
 //! store (`cubecal::profile`).
 //!
 //! `DEVICE` is a camera identity (`usb:046d:0825:SERIAL`) or its folder name in the store (as `list`
-//! prints it). Identities are printed escaped (`\n`, `\u{1b}`, …): USB serial strings are untrusted
+//! prints it); `show`, `export` and `diff` also take a profile file (a run's `profile.json`), read
+//! without a store. A store directory that does not exist is an error naming it (exit 3). Identities are printed escaped (`\n`, `\u{1b}`, …): USB serial strings are untrusted
 //! and must not reach the terminal raw. `--json` prints the same data as JSON (`show --json` prints
 //! the stored document itself).
 //!
-//! Exit codes: 0 ok; 3 unknown device, unreadable or newer-format profile, nothing to roll back, a
+//! Exit codes: 0 ok; 3 missing store, unknown device, unreadable or newer-format profile, nothing to roll back, a
 //! model an export format cannot express; 4 the camera's profile is being written by another process.
 
 use std::io::Write;
@@ -24,7 +25,8 @@ pub const DEFAULT_STORE: &str = "/var/lib/cubecal/profiles";
 
 #[derive(Debug, clap::Args)]
 pub struct StoreArg {
-    /// Profile store directory.
+    /// Profile store directory; it must exist (`calibrate --store DIR` creates it with the first
+    /// passing run).
     #[arg(long, default_value = DEFAULT_STORE)]
     pub store: PathBuf,
 }
@@ -33,16 +35,16 @@ pub struct StoreArg {
 pub enum ProfileCommand {
     /// List the cameras in the store with their current profile.
     List(StoreArg),
-    /// Show a camera's current profile.
+    /// Show a camera's current profile, or a profile file (a run's profile.json).
     Show {
-        /// Camera identity or folder name.
+        /// Camera identity or folder name, or a profile file.
         device: String,
         #[command(flatten)]
         store: StoreArg,
     },
-    /// Export a camera's current profile for another tool.
+    /// Export a camera's current profile, or a profile file (a run's profile.json), for another tool.
     Export {
-        /// Camera identity or folder name.
+        /// Camera identity or folder name, or a profile file.
         device: String,
         /// opencv (FileStorage YAML), ros (camera_info YAML), mrcal (.cameramodel), colmap (cameras.txt).
         #[arg(long)]
@@ -75,13 +77,13 @@ pub enum ProfileCommand {
 pub fn run(cmd: ProfileCommand, out: Output) -> anyhow::Result<u8> {
     match cmd {
         ProfileCommand::List(s) => list(&open(&s.store)?, out),
-        ProfileCommand::Show { device, store } => show(&open(&store.store)?, &device, out),
+        ProfileCommand::Show { device, store } => show(&store.store, &device, out),
         ProfileCommand::Export {
             device,
             format,
             out: file,
             store,
-        } => export(&open(&store.store)?, &device, format, file.as_deref()),
+        } => export(&store.store, &device, format, file.as_deref()),
         ProfileCommand::Diff {
             a,
             b,
@@ -93,7 +95,8 @@ pub fn run(cmd: ProfileCommand, out: Output) -> anyhow::Result<u8> {
 }
 
 fn open(dir: &Path) -> anyhow::Result<Store> {
-    Store::open(dir).with_context(|| format!("opening the profile store {}", dir.display()))
+    Store::open_existing(dir)
+        .with_context(|| format!("opening the profile store {}", dir.display()))
 }
 
 #[allow(clippy::print_stdout)]
@@ -146,16 +149,25 @@ fn fmt_change(c: &Change) -> String {
     }
     for p in &c.params {
         s += &format!(
-            "  {:<5} {:>14.6} -> {:>14.6}  Δ {:>+12.6}  σ {:>10.6}  Δ/σ {:>+8.2}\n",
-            p.name, p.previous, p.current, p.delta, p.sigma, p.delta_sigma
+            "  {:<5} {:>14.6} -> {:>14.6}  Δ {:>+12.6}  σ {:>10.6}  Δ/σ {:>+8.2}{}\n",
+            p.name,
+            p.previous,
+            p.current,
+            p.delta,
+            p.sigma,
+            p.delta_sigma,
+            match p.fixed.as_deref() {
+                Some(side) => format!("  (fixed in the {side} profile; not counted as a jump)"),
+                None => String::new(),
+            }
         );
     }
     s
 }
 
 #[allow(clippy::print_stdout)]
-fn show(store: &Store, device: &str, out: Output) -> anyhow::Result<u8> {
-    let (p, bytes) = store.current(device)?;
+fn show(store_dir: &Path, device: &str, out: Output) -> anyhow::Result<u8> {
+    let (p, bytes) = load(store_dir, device)?;
     if out.json {
         std::io::stdout()
             .write_all(&bytes)
@@ -188,9 +200,9 @@ fn show(store: &Store, device: &str, out: Output) -> anyhow::Result<u8> {
         k[0][0], k[1][1], k[0][2], k[1][2], k[0][1]
     );
     println!(
-        "distortion: {} {:?}",
+        "distortion: {} {}",
         display_identity(&c.distortion.model),
-        c.distortion.coefficients
+        super::fmt_distortion(&c.distortion.coefficients, &c.std_dev)
     );
     for (name, sd) in &c.std_dev {
         println!("  σ {:<5} {sd:.6}", display_identity(name));
@@ -205,11 +217,11 @@ fn show(store: &Store, device: &str, out: Output) -> anyhow::Result<u8> {
     );
     for ch in &p.verdict.checks {
         println!(
-            "  {} {:<20} {:.4} (threshold {:.4})",
+            "  {} {:<20} {} (threshold {})",
             if ch.pass { "ok  " } else { "FAIL" },
             display_identity(&ch.name),
-            ch.value,
-            ch.threshold
+            super::fmt_value(ch.value),
+            super::fmt_value(ch.threshold)
         );
     }
     if let Some(ch) = &p.change {
@@ -218,8 +230,13 @@ fn show(store: &Store, device: &str, out: Output) -> anyhow::Result<u8> {
     Ok(cubecal::exit::SUCCESS)
 }
 
-fn export(store: &Store, device: &str, format: Format, file: Option<&Path>) -> anyhow::Result<u8> {
-    let (p, _) = store.current(device)?;
+fn export(
+    store_dir: &Path,
+    device: &str,
+    format: Format,
+    file: Option<&Path>,
+) -> anyhow::Result<u8> {
+    let (p, _) = load(store_dir, device)?;
     let text = format.render(&p)?;
     match file {
         Some(path) => {
@@ -232,8 +249,9 @@ fn export(store: &Store, device: &str, format: Format, file: Option<&Path>) -> a
     Ok(cubecal::exit::SUCCESS)
 }
 
-/// A profile named by a file path or by a camera in the store, with its document's hash.
-fn load(store_dir: &Path, what: &str) -> anyhow::Result<(Profile, String)> {
+/// A profile named by a file path (a run's `profile.json`, a history file) or by a camera in the
+/// store, with the document's bytes.
+fn load(store_dir: &Path, what: &str) -> anyhow::Result<(Profile, Vec<u8>)> {
     let path = Path::new(what);
     if path.is_file() {
         let bytes = std::fs::read(path).map_err(|source| profile::ProfileError::Read {
@@ -241,10 +259,9 @@ fn load(store_dir: &Path, what: &str) -> anyhow::Result<(Profile, String)> {
             source,
         })?;
         let p = profile::parse_document(path, &bytes)?;
-        return Ok((p, sha256_hex(&bytes)));
+        return Ok((p, bytes));
     }
-    let (p, bytes) = open(store_dir)?.current(what)?;
-    Ok((p, sha256_hex(&bytes)))
+    Ok(open(store_dir)?.current(what)?)
 }
 
 #[allow(clippy::print_stdout)]
@@ -255,9 +272,9 @@ fn diff(store_dir: &Path, a: &str, b: &str, jump_sigma: f64, out: Output) -> any
             "--jump-sigma must be a positive number, not {jump_sigma}"
         ))
     );
-    let (pa, sha_a) = load(store_dir, a)?;
+    let (pa, bytes_a) = load(store_dir, a)?;
     let (pb, _) = load(store_dir, b)?;
-    let change = profile::compare(&pa, &sha_a, &pb, jump_sigma);
+    let change = profile::compare(&pa, &sha256_hex(&bytes_a), &pb, jump_sigma);
     if out.json {
         println!("{}", serde_json::to_string(&change)?);
     } else {

@@ -291,9 +291,7 @@ fn print_summary(
         outln!("{v}")?;
         return Ok(());
     }
-    for w in warnings {
-        outln!("warning: {w}")?;
-    }
+    // The rig's warnings were logged on stderr when it was loaded (`Rig::load`): not twice.
     let names: Vec<&str> = rig.faces.iter().map(|f| f.name.as_str()).collect();
     outln!(
         "rig '{}': {} ({}), {}",

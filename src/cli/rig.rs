@@ -284,9 +284,7 @@ fn print_written(
         outln!("{v}")?;
         return Ok(());
     }
-    for w in warnings {
-        outln!("warning: {w}")?;
-    }
+    // The rig's warnings were logged on stderr when it was loaded (`Rig::load`): not twice.
     for (f, p) in rig.faces.iter().zip(paths) {
         let lay = svg::PageLayout::for_face(f);
         outln!(

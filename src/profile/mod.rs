@@ -76,6 +76,8 @@ pub struct RigRef {
 /// The recorded session a calibration came from.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct SessionRef {
+    /// The session directory, absolute (the station writes it so; profiles of earlier versions may
+    /// hold a path relative to the directory the station ran in).
     pub path: PathBuf,
     /// Lower-case hex SHA-256 of the session's `manifest.json`.
     pub manifest_sha256: String,
@@ -118,6 +120,11 @@ pub struct ParamChange {
     pub sigma: f64,
     /// `delta / sigma`.
     pub delta_sigma: f64,
+    /// The side on which the parameter was fixed, not estimated (`"previous"` or `"current"`): σ is
+    /// then the other side's alone, and the row does not count toward a jump (a changed model choice,
+    /// such as k3 fixed by the station, is not a moved camera).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fixed: Option<String>,
 }
 
 /// How far a profile moved from the previous one.
@@ -127,7 +134,8 @@ pub struct Change {
     pub previous_created: String,
     /// SHA-256 of the previous profile document's bytes (lower-case hex).
     pub previous_sha256: String,
-    /// Parameters estimated (σ > 0) in both profiles, in [`crate::camera::PARAM_NAMES`] order.
+    /// Parameters estimated (σ > 0) in at least one profile, in [`crate::camera::PARAM_NAMES`] order
+    /// (one fixed on a side is marked [`ParamChange::fixed`]).
     pub params: Vec<ParamChange>,
     /// Largest `|Δ/σ|` over `params` (0 when there are none).
     pub max_abs_delta_sigma: f64,
@@ -194,6 +202,9 @@ pub enum ProfileError {
     /// No profile for this device in the store.
     #[error("no profile for '{}' in {}", .device.escape_debug(), .store.display())]
     NotFound { device: String, store: PathBuf },
+    /// The store directory does not exist (a typo, or no run has stored a profile there yet).
+    #[error("no profile store at {}: the directory does not exist (`cubecal calibrate --store {}` creates it with the first passing run)", .store.display(), .store.display())]
+    NoStore { store: PathBuf },
     /// Rollback asked for, but there is no earlier profile.
     #[error("no earlier profile of '{}' to roll back to", .identity.escape_debug())]
     NoHistory { identity: String },
@@ -212,6 +223,7 @@ impl ProfileError {
             | ProfileError::Invalid { .. }
             | ProfileError::Collision { .. }
             | ProfileError::NotFound { .. }
+            | ProfileError::NoStore { .. }
             | ProfileError::NoHistory { .. } => crate::exit::BAD_INPUT,
         }
     }
@@ -413,20 +425,37 @@ pub fn compare(
         .iter()
         .filter_map(|&name| {
             let (prev, cur) = (*va.get(name)?, *vb.get(name)?);
-            let (sa, sb) = (*a.std_dev.get(name)?, *b.std_dev.get(name)?);
+            // A parameter without σ (or σ = 0) was fixed on that side; estimated on neither, it is
+            // not compared.
+            let estimated = |c: &CalibrationReport| {
+                c.std_dev
+                    .get(name)
+                    .copied()
+                    .filter(|s| *s > 0.0 && s.is_finite())
+            };
+            let (sa, sb) = (estimated(a), estimated(b));
+            let fixed = match (sa, sb) {
+                (None, None) => return None,
+                (None, Some(_)) => Some("previous".to_string()),
+                (Some(_), None) => Some("current".to_string()),
+                (Some(_), Some(_)) => None,
+            };
+            let (sa, sb) = (sa.unwrap_or(0.0), sb.unwrap_or(0.0));
             let sigma = (sa * sa + sb * sb).sqrt();
-            (sigma > 0.0 && sigma.is_finite()).then(|| ParamChange {
+            Some(ParamChange {
                 name: name.to_string(),
                 previous: prev,
                 current: cur,
                 delta: cur - prev,
                 sigma,
                 delta_sigma: (cur - prev) / sigma,
+                fixed,
             })
         })
         .collect();
     let max_abs_delta_sigma = params
         .iter()
+        .filter(|p| p.fixed.is_none())
         .map(|p| p.delta_sigma.abs())
         .fold(0.0, f64::max);
     Change {

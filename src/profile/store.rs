@@ -208,6 +208,17 @@ impl Store {
         })
     }
 
+    /// Open a store that must already exist (for reading and managing it): a missing directory is
+    /// [`ProfileError::NoStore`] naming it, never silently an empty store.
+    pub fn open_existing(dir: &Path) -> Result<Store, ProfileError> {
+        if !dir.is_dir() {
+            return Err(ProfileError::NoStore {
+                store: dir.to_path_buf(),
+            });
+        }
+        Store::open(dir)
+    }
+
     /// The store's directory.
     pub fn root(&self) -> &Path {
         &self.root

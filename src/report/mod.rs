@@ -212,7 +212,25 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
         clock = std::time::Instant::now();
     };
     let result = &data.result;
-    let cal = &result.calibration;
+    let Some(cal) = &result.calibration else {
+        // No calibration (nothing accepted, the solver failed): what is left to judge the run by
+        // are the views, each with its overlay and the reason it was rejected.
+        let thumbs = thumbnails(data)?;
+        lap("thumbnails", &mut timings);
+        let grid = CoverageGrid::count(
+            std::iter::empty(),
+            data.observations.image_size,
+            COVERAGE_GRID,
+        );
+        let html = html(data, &[], &thumbs, &[], &grid, &[], png_dir);
+        return Ok(RunReport {
+            html,
+            plots: Vec::new(),
+            thumbs,
+            coverage: grid,
+            timings,
+        });
+    };
     let cam = analysis::camera_from_report(cal).map_err(|source| ReportError::Camera {
         path: data.dir.join(run::RESULT),
         source,
@@ -605,6 +623,19 @@ const PARAM_ORDER: [&str; 13] = [
     "fx", "fy", "cx", "cy", "skew", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
 ];
 
+/// One line on a fit: model, points, views, RMS (and OpenCV's figure), noise σ.
+fn fit_summary(cal: &crate::calib::report::CalibrationReport) -> String {
+    format!(
+        "model {}; {} points in {} views; RMS {} px (OpenCV's figure {} px); noise σ {} px",
+        esc(&cal.distortion.model),
+        cal.n_points,
+        cal.views.len(),
+        fmt_num(cal.rms_px),
+        fmt_num(cal.rms_reprojection_px),
+        fmt_num(cal.sigma_px),
+    )
+}
+
 /// The calibration section's table: each intrinsic with its value and σ (`fixed` when not estimated).
 fn parameter_table(cal: &crate::calib::report::CalibrationReport) -> String {
     let values = crate::profile::intrinsic_values(cal);
@@ -657,7 +688,6 @@ fn html(
     png_dir: &str,
 ) -> String {
     let r = &data.result;
-    let cal = &r.calibration;
     let mut h = page_start("cubecal run report");
     let _ = writeln!(
         h,
@@ -674,22 +704,32 @@ fn html(
     }
     h.push_str("</table>\n");
     h.push_str(&verdict_table(&r.verdict));
-    h.push_str(&parameter_table(cal));
-    let _ = writeln!(
-        h,
-        "<p>Model {}; {} points in {} fitted views; RMS {} px (OpenCV's figure {} px); \
-         noise σ {} px; coverage {} of {} cells; {} ({} iterations).</p>",
-        esc(&cal.distortion.model),
-        cal.n_points,
-        cal.views.len(),
-        fmt_num(cal.rms_px),
-        fmt_num(cal.rms_reprojection_px),
-        fmt_num(cal.sigma_px),
-        grid.covered(),
-        grid.counts.len(),
-        esc(&cal.termination),
-        cal.iterations
-    );
+    match &r.calibration {
+        Some(cal) => {
+            h.push_str(&parameter_table(cal));
+            let _ = writeln!(
+                h,
+                "<p>Fitted views: {}; coverage {} of {} cells; {} ({} iterations).</p>",
+                fit_summary(cal),
+                grid.covered(),
+                grid.counts.len(),
+                esc(&cal.termination),
+                cal.iterations
+            );
+        }
+        None => {
+            let accepted = thumbs.iter().filter(|t| t.accepted).count();
+            let _ = writeln!(
+                h,
+                "<p class=\"fail\">No calibration: {}. Each view below shows what the detector \
+                 found and why the view was rejected.</p>",
+                esc(&match &r.solve_error {
+                    Some(e) => format!("the solver failed ({e})"),
+                    None => format!("{accepted} of {} views accepted", thumbs.len()),
+                })
+            );
+        }
+    }
     if !r.held_out.is_empty() {
         h.push_str("<table><tr><th>held-out view</th><th>RMS (px)</th></tr>");
         for ho in &r.held_out {
@@ -702,7 +742,8 @@ fn html(
         }
         h.push_str("</table>\n");
     }
-    for n in notes {
+    // The station's notes (k3 fixed and why, a jump against the stored profile), then the report's.
+    for n in r.notes.iter().chain(notes) {
         let _ = writeln!(h, "<p class=\"note\">{}</p>", esc(n));
     }
     h.push_str(&plots_section(plots, png_dir));

@@ -60,8 +60,9 @@ fn boxed<E: Error + Send + Sync + 'static>(e: DrawingAreaErrorKind<E>) -> PlotEr
 }
 
 /// Register the embedded DejaVu Sans as plotters' `sans-serif` (once per process): the bitmap
-/// backend draws text with it, and both backends measure text with it.
-fn register_font() -> Result<(), PlotError> {
+/// backend draws text with it, and both backends measure text with it. Anything drawing text outside
+/// [`to_svg`] / [`to_rgb`] (the thumbnails' legends) calls it first.
+pub(crate) fn register_font() -> Result<(), PlotError> {
     static DONE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     let ok = *DONE.get_or_init(|| {
         plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular())
@@ -362,7 +363,7 @@ impl Figure for ResidualFigure {
         let (mut chart, geometry) = image_chart(&main, &caption, self.image_size)?;
         chart.draw_series(self.arrows.iter().map(|&((u, v), (ru, rv), kind)| {
             PathElement::new(
-                vec![(u, v), (u + self.scale * ru, v + self.scale * rv)],
+                arrow_path((u, v), (self.scale * ru, self.scale * rv)),
                 kind.colour().stroke_width(1),
             )
         }))?;
@@ -393,6 +394,28 @@ impl Figure for ResidualFigure {
         strip.draw(&Text::new(label, (x0 - tw as i32 - 8, 5), (FONT, 13)))?;
         Ok(geometry)
     }
+}
+
+/// An arrow from `from` along `d` (image pixels) as one polyline: the shaft, then a head of two
+/// barbs at ±25° from the tip, a quarter of the arrow long (at most 12 px), so that the direction of
+/// a residual reads at a glance. A zero-length arrow is a point.
+pub fn arrow_path(from: (f64, f64), d: (f64, f64)) -> Vec<(f64, f64)> {
+    let tip = (from.0 + d.0, from.1 + d.1);
+    let len = d.0.hypot(d.1);
+    if !(len > 0.0) {
+        return vec![from, tip];
+    }
+    let head = (0.25 * len).min(12.0);
+    let (ux, uy) = (-d.0 / len, -d.1 / len);
+    let barb = |angle: f64| {
+        let (s, c) = angle.sin_cos();
+        (
+            tip.0 + head * (c * ux - s * uy),
+            tip.1 + head * (s * ux + c * uy),
+        )
+    };
+    let a = 25f64.to_radians();
+    vec![from, tip, barb(a), tip, barb(-a)]
 }
 
 /// Histogram of residual components with the normal density of the estimated noise.
@@ -664,8 +687,12 @@ impl Figure for HeatmapFigure {
     }
 }
 
-/// Colours of parameter series (Tableau 10: distinguishable lines on white).
-pub const SERIES: [RGBColor; 10] = [
+/// The history plot's jump threshold lines: black, a colour no parameter series has.
+pub const JUMP: RGBColor = RGBColor(0, 0, 0);
+
+/// Colours of parameter series (Tableau 10 and three darker ones: one colour for each of the 13
+/// intrinsics, distinguishable lines on white, none of them the jump lines' black).
+pub const SERIES: [RGBColor; 13] = [
     RGBColor(78, 121, 167),
     RGBColor(242, 142, 43),
     RGBColor(225, 87, 89),
@@ -676,6 +703,9 @@ pub const SERIES: [RGBColor; 10] = [
     RGBColor(255, 157, 167),
     RGBColor(156, 117, 95),
     RGBColor(186, 176, 172),
+    RGBColor(0, 90, 50),
+    RGBColor(120, 40, 140),
+    RGBColor(60, 60, 160),
 ];
 
 /// One parameter's history: its name and, per version (oldest first), its offset in σ units, or
@@ -717,6 +747,17 @@ impl HistoryFigure {
     /// The colour of series `i`.
     pub fn colour(i: usize) -> RGBColor {
         SERIES[i % SERIES.len()]
+    }
+
+    /// The horizontal offset of series `k` from its version's x (versions are 1 apart): the series
+    /// side by side over 0.4 of the gap, so that equal values (k2 and p2 both near 0) do not hide
+    /// one another.
+    pub fn dodge(&self, k: usize) -> f64 {
+        let m = self.series.len();
+        if m < 2 {
+            return 0.0;
+        }
+        0.4 * (k as f64 / (m - 1) as f64 - 0.5)
     }
 }
 
@@ -763,26 +804,24 @@ impl Figure for HistoryFigure {
                     vec![(x0, s), (x1, s)],
                     6,
                     4,
-                    OUTLIER.stroke_width(1),
+                    JUMP.stroke_width(1),
                 ))?;
             }
         }
         for (k, (_, values)) in self.series.iter().enumerate() {
             let colour = Self::colour(k);
+            let x = |i: usize| i as f64 + self.dodge(k);
             // Lines between consecutive versions that both have a value.
             chart.draw_series(values.windows(2).enumerate().filter_map(|(i, w)| {
                 let (a, b) = (w[0]?, w[1]?);
                 (a.is_finite() && b.is_finite()).then(|| {
-                    PathElement::new(
-                        vec![(i as f64, a), ((i + 1) as f64, b)],
-                        colour.stroke_width(2),
-                    )
+                    PathElement::new(vec![(x(i), a), (x(i + 1), b)], colour.stroke_width(2))
                 })
             }))?;
             chart.draw_series(values.iter().enumerate().filter_map(|(i, v)| {
                 let v = (*v)?;
                 v.is_finite()
-                    .then(|| Circle::new((i as f64, v), 4, colour.filled()))
+                    .then(|| Circle::new((x(i), v), 4, colour.filled()))
             }))?;
         }
         let (px, py) = chart.plotting_area().get_pixel_range();
@@ -821,7 +860,7 @@ impl Figure for HistoryFigure {
             .enumerate()
             .map(|(k, (name, _))| (Self::colour(k), name.clone()))
             .collect();
-        entries.push((OUTLIER, format!("±{} σ (jump)", self.jump_sigma)));
+        entries.push((JUMP, format!("±{} σ (jump)", self.jump_sigma)));
         legend(&strip, &entries)?;
         Ok(geometry)
     }

@@ -26,8 +26,8 @@ use crate::profile::{CommitOptions, Profile, compare, display_identity, read_doc
 
 use super::plots::{HistoryFigure, Series};
 use super::{
-    PARAM_ORDER, Plot, ReportError, banner, esc, fmt_num, kv_rows, lens_plots, page_start,
-    parameter_table, plot, plots_section, png_dir_name, verdict_table, write_outputs,
+    PARAM_ORDER, Plot, ReportError, banner, esc, fit_summary, fmt_num, kv_rows, lens_plots,
+    page_start, parameter_table, plot, plots_section, png_dir_name, verdict_table, write_outputs,
 };
 
 /// One stored version of a profile.
@@ -196,7 +196,7 @@ pub fn history_series(versions: &[&Profile], jump_sigma: f64) -> Vec<Series> {
                 .map(|c| {
                     c.params
                         .iter()
-                        .find(|p| p.name == name)
+                        .find(|p| p.name == name && p.fixed.is_none())
                         .map(|p| p.delta_sigma)
                 })
                 .collect();
@@ -357,16 +357,10 @@ fn html(
     h.push_str(&parameter_table(cal));
     let _ = writeln!(
         h,
-        "<p>Image {}×{}; model {}; {} points in {} views; RMS {} px (OpenCV's figure {} px); noise σ \
-         {} px.</p>",
+        "<p>Image {}×{}; {}.</p>",
         cal.image_size[0],
         cal.image_size[1],
-        esc(&cal.distortion.model),
-        cal.n_points,
-        cal.views.len(),
-        fmt_num(cal.rms_px),
-        fmt_num(cal.rms_reprojection_px),
-        fmt_num(cal.sigma_px),
+        fit_summary(cal)
     );
     if let Some(c) = &p.change {
         let _ = writeln!(

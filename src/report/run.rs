@@ -50,7 +50,10 @@ pub struct ViewOutcome {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RunResult {
     pub verdict: Verdict,
-    pub calibration: CalibrationReport,
+    /// Null when the run obtained no calibration (no view accepted, the solver failed): the report
+    /// then shows the verdict and every view with its overlay and reason.
+    #[serde(default)]
+    pub calibration: Option<CalibrationReport>,
     #[serde(default)]
     pub held_out: Vec<HeldOutPose>,
     #[serde(default)]
@@ -62,6 +65,12 @@ pub struct RunResult {
     /// Device identity (`identity`, `name`, …) as the station wrote it.
     #[serde(default)]
     pub device: serde_json::Value,
+    /// What the station decided or noticed (k3 fixed and why, a jump against the stored profile).
+    #[serde(default)]
+    pub notes: Vec<String>,
+    /// The solver's error when it could not calibrate.
+    #[serde(default)]
+    pub solve_error: Option<String>,
 }
 
 /// Everything a run report is made from.
@@ -101,7 +110,8 @@ impl RunData {
         }
         let result: RunResult = json(&dir.join(RESULT))?;
         let observations: RawObservations = json(&dir.join(OBSERVATIONS))?;
-        let (rig, _warnings) = Rig::load(&dir.join(RIG))?;
+        // The run told the rig's warnings when it used the rig; the report does not repeat them.
+        let (rig, _warnings) = Rig::read_quiet(&dir.join(RIG))?;
         let manifest_path = dir.join(SESSION).join("manifest.json");
         let manifest = if manifest_path.exists() {
             Some(json::<Manifest>(&manifest_path)?)
@@ -122,7 +132,7 @@ impl RunData {
     /// Consistency the plots rely on: the image sizes agree and are positive.
     pub fn check(&self) -> Result<(), ReportError> {
         let a = self.observations.image_size;
-        let b = self.result.calibration.image_size;
+        let b = self.result.calibration.as_ref().map_or(a, |c| c.image_size);
         if a != b || a[0] == 0 || a[1] == 0 {
             return Err(ReportError::Invalid {
                 path: self.dir.clone(),

@@ -112,6 +112,9 @@ pub fn thumbnail(
     det: &FrameDetection,
     rig: &Rig,
 ) -> Result<RgbImage, PlotError> {
+    // The legend is text: the font must be there even when no plot was drawn before (a run
+    // without a calibration has thumbnails only).
+    super::plots::register_font()?;
     let (w, _) = frame.dimensions();
     let k = (f64::from(w) / f64::from(THUMB_WIDTH)).round().max(1.0) as u32;
     let small = downscale(frame, k);

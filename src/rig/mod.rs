@@ -61,6 +61,62 @@ pub const ORTHONORMAL_TOLERANCE: f64 = 1e-3;
 /// Two geometric features closer than this (mm) count as touching rather than crossing.
 pub const GEOMETRY_TOLERANCE_MM: f64 = 1e-3;
 
+/// The inner-corner count of a plain chessboard, `COLSxROWS` as OpenCV's `patternSize` (a board of
+/// 10 × 7 squares is `9x6`): the `--board` of `cubecal calibrate` and `cubecal detect`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BoardSize {
+    /// Inner corners along a row.
+    pub cols: u32,
+    /// Inner corners along a column.
+    pub rows: u32,
+}
+
+/// A `--board` value that is not `COLSxROWS` with both counts at least 2.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "'{0}' is not COLSxROWS inner corners, each at least 2 (e.g. 9x6 for a board of 10 × 7 squares)"
+)]
+pub struct BoardSizeError(pub String);
+
+impl std::str::FromStr for BoardSize {
+    type Err = BoardSizeError;
+    fn from_str(s: &str) -> Result<BoardSize, BoardSizeError> {
+        let bad = || BoardSizeError(s.to_string());
+        let (c, r) = s.split_once(['x', 'X', '×']).ok_or_else(bad)?;
+        let parse = |t: &str| t.trim().parse::<u32>().ok().filter(|n| *n >= 2);
+        Ok(BoardSize {
+            cols: parse(c).ok_or_else(bad)?,
+            rows: parse(r).ok_or_else(bad)?,
+        })
+    }
+}
+
+impl std::fmt::Display for BoardSize {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}x{}", self.cols, self.rows)
+    }
+}
+
+/// The rig file of a flat chessboard of `size` inner corners and `square_mm` squares: one face in
+/// the rig's z = 0 plane, inner corner (0, 0) at the origin, columns along +x, rows along +y, the
+/// default margin of one square. Parse it with [`Rig::from_toml_str`] (which checks `square_mm`).
+pub fn board_toml(size: BoardSize, square_mm: f64) -> String {
+    format!(
+        "# A plain chessboard given as --board {size} --square {square_mm}\n\
+         name = \"board-{size}-{square_mm}mm\"\n\
+         units = \"mm\"\n\n\
+         [[faces]]\n\
+         name = \"board\"\n\
+         cols = {}\n\
+         rows = {}\n\
+         square_mm = {square_mm:?}\n\
+         origin = [0, 0, 0]\n\
+         col_dir = [1, 0, 0]\n\
+         row_dir = [0, 1, 0]\n",
+        size.cols, size.rows
+    )
+}
+
 /// Errors loading or validating a rig description. `path` is the file (or the name given to
 /// [`Rig::from_toml_str`]); `key` is the TOML key path such as `faces[2].cols`.
 #[derive(Debug, thiserror::Error)]
@@ -415,6 +471,14 @@ pub struct RawFace {
 impl Rig {
     /// Read, parse and validate a rig file; warnings are also logged.
     pub fn load(path: &Path) -> Result<(Rig, Vec<RigWarning>), RigError> {
+        let (rig, warnings) = Rig::read_quiet(path)?;
+        rig.log_warnings(&warnings);
+        Ok((rig, warnings))
+    }
+
+    /// [`Rig::load`] without logging the warnings: for readers of a rig whose warnings were told
+    /// when it was used (a run's `rig.toml` read again for its report).
+    pub fn read_quiet(path: &Path) -> Result<(Rig, Vec<RigWarning>), RigError> {
         let text = std::fs::read_to_string(path).map_err(|source| RigError::Read {
             path: path.display().to_string(),
             source,
@@ -422,17 +486,21 @@ impl Rig {
         Rig::from_toml_str(&text, &path.display().to_string())
     }
 
-    /// Parse and validate rig TOML; `path` names the source in errors.
+    /// Parse and validate rig TOML; `path` names the source in errors. The warnings are returned,
+    /// not logged: the caller tells them once ([`Rig::log_warnings`]).
     pub fn from_toml_str(text: &str, path: &str) -> Result<(Rig, Vec<RigWarning>), RigError> {
         let raw: RawRig = toml::from_str(text).map_err(|source| RigError::Syntax {
             path: path.to_string(),
             source,
         })?;
-        let (rig, warnings) = raw.validate(path)?;
-        for w in &warnings {
-            tracing::warn!(rig = %rig.name, "{w}");
+        raw.validate(path)
+    }
+
+    /// Log a rig's warnings (once per use of the rig, on stderr at the default level).
+    pub fn log_warnings(&self, warnings: &[RigWarning]) {
+        for w in warnings {
+            tracing::warn!(rig = %self.name, "{w}");
         }
-        Ok((rig, warnings))
     }
 
     /// Rig-frame position of inner corner `(row, col)` of face `face`, or `None` if out of range.

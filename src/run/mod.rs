@@ -71,11 +71,12 @@ pub struct RunResult {
 }
 
 impl RunResult {
-    /// The process exit code of this result: 0 pass, 5 no calibration, 6 rejected by QA.
+    /// The process exit code of this result: 0 pass, 5 no calibration (too few views accepted, or
+    /// the solver failed), 6 calibrated but rejected by QA.
     pub fn exit_code(&self) -> u8 {
         if self.verdict.pass {
             crate::exit::SUCCESS
-        } else if self.calibration.is_none() && self.solve_error.is_some() {
+        } else if self.calibration.is_none() {
             crate::exit::CALIBRATION_FAILED
         } else {
             crate::exit::QA_REJECTED

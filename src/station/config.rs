@@ -385,6 +385,60 @@ fn excerpt(s: &str) -> String {
     format!("{}…", &s[..end])
 }
 
+/// The dotted paths of a table's values that are not tables (`qa.max_rms_px`), in order; an empty
+/// table is a leaf too (an unknown section without keys).
+fn leaf_keys(table: &toml::Table, prefix: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    for (k, v) in table {
+        let path = if prefix.is_empty() {
+            k.clone()
+        } else {
+            format!("{prefix}.{k}")
+        };
+        match v {
+            toml::Value::Table(t) if !t.is_empty() => out.extend(leaf_keys(t, &path)),
+            _ => out.push(path),
+        }
+    }
+    out
+}
+
+/// Remove the value at a dotted path.
+fn remove_key(table: &mut toml::Table, key: &str) {
+    match key.split_once('.') {
+        Some((head, rest)) => {
+            if let Some(toml::Value::Table(t)) = table.get_mut(head) {
+                remove_key(t, rest);
+            }
+        }
+        None => {
+            table.remove(key);
+        }
+    }
+}
+
+/// serde's "unknown field `x`, expected one of `a`, `b`, …" as "unknown key; the keys of [section]
+/// are:" followed by every valid key, a few per line (long lines are cut when printed).
+fn unknown_field_message(key: &str, serde_message: &str) -> Option<String> {
+    let rest = serde_message.strip_prefix("unknown field `")?;
+    let (_, expected) = rest.split_once('`')?;
+    let names: Vec<&str> = expected
+        .split('`')
+        .skip(1)
+        .step_by(2)
+        .filter(|n| !n.is_empty())
+        .collect();
+    let section = match key.rsplit_once('.') {
+        Some((section, _)) => format!("[{section}]"),
+        None => "the config (sections)".to_string(),
+    };
+    let mut lines = vec![format!("unknown key; the keys of {section} are:")];
+    for chunk in names.chunks(6) {
+        lines.push(format!("    {}", chunk.join(", ")));
+    }
+    Some(lines.join("\n"))
+}
+
 impl StationConfig {
     /// Read a config file into a TOML table (not yet validated).
     pub fn read_table(path: &Path) -> Result<toml::Table, ConfigError> {
@@ -401,13 +455,34 @@ impl StationConfig {
 
     /// Parse a table (file plus overrides) and validate it. `origin` names it in messages.
     pub fn from_table(table: toml::Table, origin: &str) -> Result<StationConfig, ConfigError> {
-        let cfg: StationConfig =
-            toml::Value::Table(table)
-                .try_into()
-                .map_err(|e: toml::de::Error| ConfigError::Syntax {
-                    origin: origin.to_string(),
-                    message: excerpt(e.message()),
-                })?;
+        let parse = |t: &toml::Table| -> Result<StationConfig, toml::de::Error> {
+            toml::Value::Table(t.clone()).try_into()
+        };
+        let cfg = match parse(&table) {
+            Ok(cfg) => cfg,
+            Err(e) => {
+                let message = e.message().to_string();
+                // serde names neither the key of a wrong type nor (from a table, not text) its line:
+                // the key is the one whose removal changes the error.
+                let key = leaf_keys(&table, "").into_iter().find(|key| {
+                    let mut t = table.clone();
+                    remove_key(&mut t, key);
+                    parse(&t).err().is_none_or(|e2| e2.message() != message)
+                });
+                return Err(match key {
+                    Some(key) => ConfigError::Invalid {
+                        origin: origin.to_string(),
+                        message: unknown_field_message(&key, &message)
+                            .unwrap_or_else(|| excerpt(&message)),
+                        key,
+                    },
+                    None => ConfigError::Syntax {
+                        origin: origin.to_string(),
+                        message: excerpt(&message),
+                    },
+                });
+            }
+        };
         cfg.validate(origin)?;
         Ok(cfg)
     }

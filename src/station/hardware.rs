@@ -187,6 +187,18 @@ pub fn open(
             let dir = c.replay.clone().unwrap_or_default();
             let src = ReplaySource::open(&dir)?;
             let session: &Session = src.session();
+            if session.manifest.incomplete() {
+                tracing::warn!(
+                    "{}: this session was recorded incomplete ({}); the replay has only the poses captured before that",
+                    dir.display(),
+                    session
+                        .manifest
+                        .ended_by
+                        .as_deref()
+                        .or_else(|| session.manifest.header.config.get("ended_by")?.as_str())
+                        .unwrap_or("ended early")
+                );
+            }
             let fpp = cfg.camera.frames_per_pose.max(1) as usize;
             let angles: Vec<Option<f64>> = session
                 .manifest

@@ -203,7 +203,6 @@ pub fn run(
         config: serde_json::json!({
             "station": cfg,
             "rig_toml": spec.rig_toml,
-            "complete": false,
         }),
     };
     let mut session = SessionWriter::create_background(&session_dir, header)?;
@@ -232,20 +231,17 @@ pub fn run(
             session: session_dir.clone(),
         });
     }
-    // Whatever happened, close the session: complete, or marked with what ended it.
-    let end = serde_json::json!(outcome.is_ok());
+    // Whatever happened, close the session: complete, or marked with what ended it (the manifest's
+    // top-level `complete` and `ended_by`).
+    let mut ended_by = None;
     if let Err(e) = &outcome {
         tracing::warn!(error = %e, "run ended early; stopping the turntable");
         if let Err(te) = hw.turntable.stop() {
             tracing::warn!(error = %te, "could not stop the turntable");
         }
-        if let Some(obj) = session.header_mut().config.as_object_mut() {
-            obj.insert("ended_by".into(), serde_json::json!(e.to_string()));
-        }
+        ended_by = Some(e.to_string());
     }
-    if let Some(obj) = session.header_mut().config.as_object_mut() {
-        obj.insert("complete".into(), end);
-    }
+    session.set_outcome(outcome.is_ok(), ended_by);
     let finished = session.finish();
     let poses = outcome?;
     finished?;
@@ -788,8 +784,15 @@ fn write_profile(
             name: spec.rig.name.clone(),
             sha256: hex(spec.rig_toml.as_bytes()),
         },
+        // Absolute, so that the profile names its session wherever it is read from (a run directory
+        // given as a relative --out would otherwise mean another place from another directory).
         session: Some(SessionRef {
-            path: spec.run_dir.join(crate::run::SESSION),
+            path: std::path::absolute(spec.run_dir.join(crate::run::SESSION)).map_err(
+                |source| StationError::Write {
+                    path: spec.run_dir.to_path_buf(),
+                    source,
+                },
+            )?,
             manifest_sha256,
         }),
         software_version: env!("CARGO_PKG_VERSION").to_string(),

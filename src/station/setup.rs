@@ -29,6 +29,8 @@ pub struct RunRequest {
     /// `KIND[:PORT]` of the turntable.
     pub turntable: Option<String>,
     pub rig: Option<PathBuf>,
+    /// A plain chessboard instead of a rig file: inner corners and square size (mm).
+    pub board: Option<(crate::rig::BoardSize, f64)>,
     pub store: Option<PathBuf>,
     pub out: Option<PathBuf>,
     pub poses: Option<usize>,
@@ -70,6 +72,11 @@ pub enum SetupError {
     },
     #[error("--set {0}: expected KEY=VALUE")]
     Set(String),
+    /// Photos without a rig: the bundled cube is a turntable rig, never the right guess for them.
+    #[error(
+        "photos need the rig they show: give --rig RIG.toml, or --board COLSxROWS --square MM for a plain chessboard (inner corners, as OpenCV counts them: 9x6 for a board of 10 × 7 squares)"
+    )]
+    ImagesNeedRig,
 }
 
 impl SetupError {
@@ -80,7 +87,7 @@ impl SetupError {
             SetupError::Session(e) => e.exit_code(),
             SetupError::Rig(e) => e.exit_code(),
             SetupError::Recorded { .. } => crate::exit::BAD_INPUT,
-            SetupError::Set(_) => crate::exit::USAGE,
+            SetupError::Set(_) | SetupError::ImagesNeedRig => crate::exit::USAGE,
         }
     }
 }
@@ -193,6 +200,16 @@ pub fn build_config(
         }
     }
     let cfg = StationConfig::from_table(table, &origin)?;
+    if cfg.camera.source == super::config::SourceKind::Images
+        && args.rig.is_none()
+        && args.board.is_none()
+        && cfg.rig.path.is_none()
+    {
+        return Err(SetupError::ImagesNeedRig);
+    }
+    if let Some((size, square_mm)) = args.board {
+        return Ok((cfg, crate::rig::board_toml(size, square_mm), None));
+    }
     let (rig_toml, rig_path) = match (&args.rig, &recorded_rig, &cfg.rig.path) {
         (Some(p), _, _) => (read_rig(p)?, Some(p.clone())),
         (None, Some(text), _) => (text.clone(), cfg.rig.path.clone()),
@@ -228,14 +245,13 @@ pub struct Prepared {
 /// `calibrate`, `serve` and the turntable feeder.
 pub fn prepare(args: &RunRequest) -> Result<Prepared, SetupError> {
     let (cfg, rig_toml, rig_path) = build_config(args)?;
-    let origin = rig_path
-        .as_ref()
-        .map(|p| p.display().to_string())
-        .unwrap_or_else(|| "the bundled rig".into());
+    let origin = match (&rig_path, args.board) {
+        (Some(p), _) => p.display().to_string(),
+        (None, Some((size, square_mm))) => format!("--board {size} --square {square_mm}"),
+        (None, None) => "the bundled rig".into(),
+    };
     let (rig, warnings) = Rig::from_toml_str(&rig_toml, &origin)?;
-    for w in &warnings {
-        tracing::warn!("{w}");
-    }
+    rig.log_warnings(&warnings);
     let run_dir = cfg
         .output
         .out
