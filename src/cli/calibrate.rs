@@ -38,7 +38,8 @@ pub struct CalibrateArgs {
     /// Rig description (TOML). Default: the config's rig.path, else the bundled cube.
     #[arg(long)]
     pub rig: Option<PathBuf>,
-    /// Profile store directory (output.store).
+    /// Profile store (output.store): a directory or postgres://USER@HOST/DB (password from
+    /// output.store_password_file or PGPASSWORD, never the URL).
     #[arg(long)]
     pub store: Option<PathBuf>,
     /// Run directory to create (output.out). Default: cubecal-runs/<UTC time>.

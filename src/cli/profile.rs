@@ -1,5 +1,7 @@
-//! `cubecal profile list | show | export | diff | rollback`: read and manage the per-device profile
-//! store (`cubecal::profile`).
+//! `cubecal profile list | show | export (get) | diff | rollback | migrate`: read and manage the
+//! per-device profile store (`cubecal::profile`): a directory, or a PostgreSQL database named by
+//! `--store postgres://USER@HOST/DB` (password from `--store-password-file` or `PGPASSWORD`, never the
+//! URL). `migrate` applies the database schema's migrations.
 //!
 //! `DEVICE` is a camera identity (`usb:046d:0825:SERIAL`) or its folder name in the store (as `list`
 //! prints it). Identities are printed escaped (`\n`, `\u{1b}`, …): USB serial strings are untrusted
@@ -7,15 +9,18 @@
 //! the stored document itself).
 //!
 //! Exit codes: 0 ok; 3 unknown device, unreadable or newer-format profile, nothing to roll back, a
-//! model an export format cannot express; 4 the camera's profile is being written by another process.
+//! model an export format cannot express, a password in the store URL, a database schema not migrated
+//! or newer than this cubecal; 4 the camera's profile is being written by another process (or
+//! station); 7 the database cannot be reached or fails a statement.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use cubecal::profile::export::Format;
+use cubecal::profile::postgres::PgStore;
 use cubecal::profile::store::sha256_hex;
-use cubecal::profile::{self, Change, Profile, Store, display_identity};
+use cubecal::profile::{self, Change, Profile, ProfileStore, StoreLocation, display_identity};
 
 use super::Output;
 
@@ -24,9 +29,12 @@ pub const DEFAULT_STORE: &str = "/var/lib/cubecal/profiles";
 
 #[derive(Debug, clap::Args)]
 pub struct StoreArg {
-    /// Profile store directory.
+    /// Profile store: a directory, or a PostgreSQL URL postgres://USER@HOST[:PORT]/DB (no password).
     #[arg(long, default_value = DEFAULT_STORE)]
     pub store: PathBuf,
+    /// File whose first line is the PostgreSQL password (default: the PGPASSWORD variable).
+    #[arg(long)]
+    pub store_password_file: Option<PathBuf>,
 }
 
 #[derive(Debug, clap::Subcommand)]
@@ -40,7 +48,8 @@ pub enum ProfileCommand {
         #[command(flatten)]
         store: StoreArg,
     },
-    /// Export a camera's current profile for another tool.
+    /// Export a camera's current profile for another tool (`get` is the same command).
+    #[command(visible_alias = "get")]
     Export {
         /// Camera identity or folder name.
         device: String,
@@ -70,35 +79,79 @@ pub enum ProfileCommand {
         #[command(flatten)]
         store: StoreArg,
     },
+    /// Create or upgrade a PostgreSQL store's tables (the migrations in migrations/postgres/).
+    Migrate(StoreArg),
 }
 
 pub fn run(cmd: ProfileCommand, out: Output) -> anyhow::Result<u8> {
     match cmd {
-        ProfileCommand::List(s) => list(&open(&s.store)?, out),
-        ProfileCommand::Show { device, store } => show(&open(&store.store)?, &device, out),
+        ProfileCommand::List(s) => list(&*open(&s)?, out),
+        ProfileCommand::Show { device, store } => show(&*open(&store)?, &device, out),
         ProfileCommand::Export {
             device,
             format,
             out: file,
             store,
-        } => export(&open(&store.store)?, &device, format, file.as_deref()),
+        } => export(&*open(&store)?, &device, format, file.as_deref()),
         ProfileCommand::Diff {
             a,
             b,
             jump_sigma,
             store,
-        } => diff(&store.store, &a, &b, jump_sigma, out),
-        ProfileCommand::Rollback { device, store } => rollback(&open(&store.store)?, &device, out),
+        } => diff(&store, &a, &b, jump_sigma, out),
+        ProfileCommand::Rollback { device, store } => rollback(&*open(&store)?, &device, out),
+        ProfileCommand::Migrate(store) => migrate(&store, out),
     }
 }
 
-fn open(dir: &Path) -> anyhow::Result<Store> {
-    Store::open(dir).with_context(|| format!("opening the profile store {}", dir.display()))
+fn open(s: &StoreArg) -> anyhow::Result<Box<dyn ProfileStore>> {
+    profile::open_store(&s.store, s.store_password_file.as_deref())
+        .with_context(|| format!("opening the profile store {}", describe(&s.store)))
+}
+
+/// The store as it may be shown (a URL without password or options; the URL is refused when it holds
+/// a password, but its text must not reach the terminal either).
+fn describe(store: &Path) -> String {
+    match StoreLocation::parse(store) {
+        StoreLocation::Dir(d) => d.display().to_string(),
+        StoreLocation::Postgres(url) => profile::postgres::redact(&url),
+    }
 }
 
 #[allow(clippy::print_stdout)]
-fn list(store: &Store, out: Output) -> anyhow::Result<u8> {
-    let entries = store.list()?;
+fn migrate(s: &StoreArg, out: Output) -> anyhow::Result<u8> {
+    let StoreLocation::Postgres(url) = StoreLocation::parse(&s.store) else {
+        anyhow::bail!(UsageError(format!(
+            "{} is a file store, which has no schema to migrate; give --store postgres://…",
+            s.store.display()
+        )));
+    };
+    let password = profile::backend::read_password(s.store_password_file.as_deref())?;
+    let store = PgStore::connect_unchecked(&url, password)?;
+    let applied = store.migrate()?;
+    let version = store.schema_version()?;
+    if out.json {
+        println!(
+            "{}",
+            serde_json::json!({ "store": store.describe(), "applied": applied, "schema_version": version })
+        );
+    } else if applied.is_empty() {
+        println!(
+            "{}: schema at version {version}, up to date",
+            store.describe()
+        );
+    } else {
+        println!(
+            "{}: applied migrations {applied:?}; schema at version {version}",
+            store.describe()
+        );
+    }
+    Ok(cubecal::exit::SUCCESS)
+}
+
+#[allow(clippy::print_stdout)]
+fn list(store: &dyn ProfileStore, out: Output) -> anyhow::Result<u8> {
+    let entries = store.list_cameras()?;
     if out.json {
         let rows: Vec<serde_json::Value> = entries
             .iter()
@@ -154,8 +207,8 @@ fn fmt_change(c: &Change) -> String {
 }
 
 #[allow(clippy::print_stdout)]
-fn show(store: &Store, device: &str, out: Output) -> anyhow::Result<u8> {
-    let (p, bytes) = store.current(device)?;
+fn show(store: &dyn ProfileStore, device: &str, out: Output) -> anyhow::Result<u8> {
+    let (p, bytes) = store.current_profile(device)?;
     if out.json {
         std::io::stdout()
             .write_all(&bytes)
@@ -218,8 +271,13 @@ fn show(store: &Store, device: &str, out: Output) -> anyhow::Result<u8> {
     Ok(cubecal::exit::SUCCESS)
 }
 
-fn export(store: &Store, device: &str, format: Format, file: Option<&Path>) -> anyhow::Result<u8> {
-    let (p, _) = store.current(device)?;
+fn export(
+    store: &dyn ProfileStore,
+    device: &str,
+    format: Format,
+    file: Option<&Path>,
+) -> anyhow::Result<u8> {
+    let (p, _) = store.current_profile(device)?;
     let text = format.render(&p)?;
     match file {
         Some(path) => {
@@ -233,7 +291,7 @@ fn export(store: &Store, device: &str, format: Format, file: Option<&Path>) -> a
 }
 
 /// A profile named by a file path or by a camera in the store, with its document's hash.
-fn load(store_dir: &Path, what: &str) -> anyhow::Result<(Profile, String)> {
+fn load(store: &StoreArg, what: &str) -> anyhow::Result<(Profile, String)> {
     let path = Path::new(what);
     if path.is_file() {
         let bytes = std::fs::read(path).map_err(|source| profile::ProfileError::Read {
@@ -243,20 +301,20 @@ fn load(store_dir: &Path, what: &str) -> anyhow::Result<(Profile, String)> {
         let p = profile::parse_document(path, &bytes)?;
         return Ok((p, sha256_hex(&bytes)));
     }
-    let (p, bytes) = open(store_dir)?.current(what)?;
+    let (p, bytes) = open(store)?.current_profile(what)?;
     Ok((p, sha256_hex(&bytes)))
 }
 
 #[allow(clippy::print_stdout)]
-fn diff(store_dir: &Path, a: &str, b: &str, jump_sigma: f64, out: Output) -> anyhow::Result<u8> {
+fn diff(store: &StoreArg, a: &str, b: &str, jump_sigma: f64, out: Output) -> anyhow::Result<u8> {
     anyhow::ensure!(
         jump_sigma.is_finite() && jump_sigma > 0.0,
         UsageError(format!(
             "--jump-sigma must be a positive number, not {jump_sigma}"
         ))
     );
-    let (pa, sha_a) = load(store_dir, a)?;
-    let (pb, _) = load(store_dir, b)?;
+    let (pa, sha_a) = load(store, a)?;
+    let (pb, _) = load(store, b)?;
     let change = profile::compare(&pa, &sha_a, &pb, jump_sigma);
     if out.json {
         println!("{}", serde_json::to_string(&change)?);
@@ -267,17 +325,17 @@ fn diff(store_dir: &Path, a: &str, b: &str, jump_sigma: f64, out: Output) -> any
 }
 
 #[allow(clippy::print_stdout)]
-fn rollback(store: &Store, device: &str, out: Output) -> anyhow::Result<u8> {
-    let r = store.rollback(device)?;
+fn rollback(store: &dyn ProfileStore, device: &str, out: Output) -> anyhow::Result<u8> {
+    let r = store.roll_back(device)?;
     if out.json {
         println!("{}", serde_json::to_string(&r)?);
     } else {
         println!(
             "{}: restored the profile of {} (the profile of {} is kept in {})",
-            r.folder.display(),
+            r.folder,
             display_identity(&r.restored_created),
             display_identity(&r.replaced_created),
-            r.set_aside.display()
+            r.set_aside
         );
     }
     Ok(cubecal::exit::SUCCESS)
