@@ -38,7 +38,7 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 
 use postgres::error::SqlState;
-use postgres::{Client, NoTls, Row};
+use postgres::{Client, NoTls, Row, Statement, ToStatement};
 use serde::Serialize;
 
 use super::backend::{Committed, ProfileStore, Provenance, RolledBack};
@@ -58,8 +58,24 @@ const MIGRATE_LOCK: i64 = 0x6375_6265_6361_6c00; // "cubecal\0"
 /// A connection to a PostgreSQL profile store.
 pub struct PgStore {
     client: Mutex<Client>,
+    /// The commit's statements, prepared on `client` at the first commit (halves its round trips).
+    commit_statements: Mutex<Option<CommitStatements>>,
     describe: String,
 }
+
+/// The statements of a commit, prepared once per connection.
+#[derive(Clone)]
+struct CommitStatements {
+    lock: Statement,
+    by_run: Statement,
+    current: Statement,
+    archive: Statement,
+    insert: Statement,
+}
+
+const LOCK_SQL: &str = "SELECT pg_try_advisory_xact_lock($1) AS locked";
+const CURRENT_SQL: &str =
+    "SELECT id, document FROM cubecal_profile WHERE identity = $1 AND state = 'current'";
 
 impl std::fmt::Debug for PgStore {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -181,6 +197,7 @@ impl PgStore {
         tracing::debug!(store = %describe, "connected to the profile database");
         Ok(PgStore {
             client: Mutex::new(client),
+            commit_statements: Mutex::new(None),
             describe,
         })
     }
@@ -192,6 +209,36 @@ impl PgStore {
             action,
             source,
         }
+    }
+
+    /// The commit's prepared statements (prepared on `client` the first time).
+    fn commit_statements(&self, client: &mut Client) -> Result<CommitStatements, ProfileError> {
+        let mut cached = self
+            .commit_statements
+            .lock()
+            .unwrap_or_else(|p| p.into_inner());
+        if let Some(s) = cached.as_ref() {
+            return Ok(s.clone());
+        }
+        let mut prepare = |sql: &str| {
+            client
+                .prepare(sql)
+                .map_err(self.db_err("preparing the commit"))
+        };
+        let s = CommitStatements {
+            lock: prepare(LOCK_SQL)?,
+            by_run: prepare("SELECT id, document FROM cubecal_profile WHERE run_id = $1")?,
+            current: prepare(CURRENT_SQL)?,
+            archive: prepare("UPDATE cubecal_profile SET state = 'history' WHERE id = $1")?,
+            insert: prepare(
+                "INSERT INTO cubecal_profile (identity, folder, state, run_id, document, sha256,
+                     created, station, rig_name, rig_sha256, software_version, verdict_pass, report)
+                 VALUES ($1, $2, 'current', $3, $4, $5, $6, $7, $8, $9, $10, $11, $12)
+                 RETURNING id",
+            )?,
+        };
+        *cached = Some(s.clone());
+        Ok(s)
     }
 
     fn client(&self) -> std::sync::MutexGuard<'_, Client> {
@@ -315,16 +362,14 @@ impl PgStore {
     }
 
     /// The current (document bytes, profile) of `identity`, checked to belong to it.
-    fn current_of(
+    fn current_of<Q: ?Sized + ToStatement>(
         &self,
         client: &mut impl postgres::GenericClient,
+        query: &Q,
         identity: &str,
     ) -> Result<Option<(i64, Vec<u8>, Profile)>, ProfileError> {
         let row = client
-            .query_opt(
-                "SELECT id, document FROM cubecal_profile WHERE identity = $1 AND state = 'current'",
-                &[&identity.as_bytes()],
-            )
+            .query_opt(query, &[&identity.as_bytes()])
             .map_err(self.db_err("reading the current profile"))?;
         let Some(row) = row else {
             return Ok(None);
@@ -408,23 +453,18 @@ impl ProfileStore for PgStore {
         let folder = folder_name(identity);
 
         let mut client = self.client();
+        let st = self.commit_statements(&mut client)?;
         let mut tx = client
             .transaction()
             .map_err(self.db_err("starting the commit"))?;
         let row = tx
-            .query_one(
-                "SELECT pg_try_advisory_xact_lock($1) AS locked",
-                &[&camera_key(identity)],
-            )
+            .query_one(&st.lock, &[&camera_key(identity)])
             .map_err(self.db_err("locking the camera"))?;
         if !self.get::<bool>(&row, "locked")? {
             return Err(self.busy(identity));
         }
         let done = tx
-            .query_opt(
-                "SELECT id, document FROM cubecal_profile WHERE run_id = $1",
-                &[&run_id],
-            )
+            .query_opt(&st.by_run, &[&run_id])
             .map_err(self.db_err("looking the run up"))?;
         if let Some(row) = done {
             let id: i64 = self.get(&row, "id")?;
@@ -448,7 +488,7 @@ impl ProfileStore for PgStore {
                 already_stored: true,
             });
         }
-        let previous = self.current_of(&mut tx, identity)?;
+        let previous = self.current_of(&mut tx, &st.current, identity)?;
         let (doc, bytes) = prepare_document(
             &self.doc_path(&folder),
             profile,
@@ -456,18 +496,12 @@ impl ProfileStore for PgStore {
             options,
         )?;
         if let Some((prev_id, _, _)) = &previous {
-            tx.execute(
-                "UPDATE cubecal_profile SET state = 'history' WHERE id = $1",
-                &[prev_id],
-            )
-            .map_err(self.db_err("archiving the previous profile"))?;
+            tx.execute(&st.archive, &[prev_id])
+                .map_err(self.db_err("archiving the previous profile"))?;
         }
         let row = tx
             .query_one(
-                "INSERT INTO cubecal_profile (identity, folder, state, run_id, document, sha256,
-                     created, station, rig_name, rig_sha256, software_version, verdict_pass, report)
-                 VALUES ($1, $2, 'current', $3, $4, $5, $6, $7, $8, $9, $10, $11, $12)
-                 RETURNING id",
+                &st.insert,
                 &[
                     &identity.as_bytes(),
                     &folder,
@@ -499,7 +533,7 @@ impl ProfileStore for PgStore {
     fn current_profile(&self, device: &str) -> Result<(Profile, Vec<u8>), ProfileError> {
         let mut client = self.client();
         let identity = self.resolve(&mut *client, device)?;
-        match self.current_of(&mut *client, &identity)? {
+        match self.current_of(&mut *client, CURRENT_SQL, &identity)? {
             Some((_, bytes, profile)) => Ok((profile, bytes)),
             None => Err(ProfileError::NotFound {
                 device: device.to_string(),
@@ -544,16 +578,13 @@ impl ProfileStore for PgStore {
             .map_err(self.db_err("starting the rollback"))?;
         let identity = self.resolve(&mut tx, device)?;
         let row = tx
-            .query_one(
-                "SELECT pg_try_advisory_xact_lock($1) AS locked",
-                &[&camera_key(&identity)],
-            )
+            .query_one(LOCK_SQL, &[&camera_key(&identity)])
             .map_err(self.db_err("locking the camera"))?;
         if !self.get::<bool>(&row, "locked")? {
             return Err(self.busy(&identity));
         }
         // re-read under the lock: a commit may have finished in between
-        let Some((cur_id, _, cur)) = self.current_of(&mut tx, &identity)? else {
+        let Some((cur_id, _, cur)) = self.current_of(&mut tx, CURRENT_SQL, &identity)? else {
             return Err(ProfileError::NotFound {
                 device: device.to_string(),
                 store: PathBuf::from(&self.describe),
