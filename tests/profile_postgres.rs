@@ -70,6 +70,21 @@ fn migrate(url: &str, pw: &str, expect: &str) {
     assert!(text(&out.stdout).contains(expect), "{}", text(&out.stdout));
 }
 
+/// The stored versions of `id` are `expected` (run id, state), oldest first; returns them.
+fn assert_runs(
+    store: &PgStore,
+    id: &str,
+    expected: &[(&str, &str)],
+) -> Vec<cubecal::profile::postgres::Version> {
+    let history = store.history(id).unwrap_or_else(|e| panic!("{e}"));
+    let runs: Vec<(&str, &str)> = history
+        .iter()
+        .map(|v| (v.run_id.as_str(), v.state.as_str()))
+        .collect();
+    assert_eq!(runs, expected);
+    history
+}
+
 fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(b).into_owned()
 }
@@ -182,12 +197,7 @@ fn history_keeps_provenance_a_failed_run_changes_nothing_and_a_run_is_stored_onc
     assert_eq!(bytes, v1_bytes);
     assert_eq!(current.calibration.camera_matrix[0][0], 1000.001);
 
-    let history = store.history(id).unwrap_or_else(|e| panic!("{e}"));
-    let states: Vec<(&str, &str)> = history
-        .iter()
-        .map(|v| (v.run_id.as_str(), v.state.as_str()))
-        .collect();
-    assert_eq!(states, [("run-0", "history"), ("run-1", "current")]);
+    let history = assert_runs(&store, id, &[("run-0", "history"), ("run-1", "current")]);
     for v in &history {
         assert_eq!(v.station, "bench-3");
         assert_eq!(v.rig_name, "cube_outside");
@@ -444,4 +454,86 @@ fn hostile_identities_and_sql_injection_are_data() {
         store.current_profile("' OR '1'='1"),
         Err(ProfileError::NotFound { .. })
     ));
+}
+
+/// The README's role set-up: a station role that may commit, a reader that may only read.
+const ROLES_SQL: &[&str] = &[
+    "CREATE ROLE cubecal_station LOGIN PASSWORD 'station-pw'",
+    "CREATE ROLE cubecal_reader LOGIN PASSWORD 'reader-pw'",
+    "GRANT SELECT ON cubecal_migrations TO cubecal_station, cubecal_reader",
+    "GRANT SELECT ON cubecal_profile TO cubecal_reader",
+    "GRANT SELECT, INSERT, UPDATE ON cubecal_profile TO cubecal_station",
+    "GRANT USAGE ON SEQUENCE cubecal_profile_id_seq TO cubecal_station",
+];
+
+#[test]
+fn a_read_only_role_can_get_profiles_but_not_commit() {
+    let Some((admin_store, url)) = store("t_roles") else {
+        return;
+    };
+    let Some(cluster) = pg::cluster() else { return };
+    let mut admin = cluster.admin("t_roles");
+    for sql in [
+        "DROP ROLE IF EXISTS cubecal_station",
+        "DROP ROLE IF EXISTS cubecal_reader",
+    ] {
+        admin
+            .batch_execute(sql)
+            .unwrap_or_else(|e| panic!("{sql}: {e:?}"));
+    }
+    for sql in ROLES_SQL {
+        admin
+            .batch_execute(sql)
+            .unwrap_or_else(|e| panic!("{sql}: {e:?}"));
+    }
+    drop(admin_store);
+    let as_role = |role: &str| url.replacen(pg::ADMIN, role, 1);
+    let id = "usb:046d:0825:ROLES";
+
+    // the station commits
+    let station = PgStore::connect(&as_role("cubecal_station"), Some("station-pw".into()))
+        .unwrap_or_else(|e| panic!("{e}"));
+    for n in 0..2 {
+        station
+            .commit_run(
+                &profile(id, n, true),
+                &opts(),
+                &provenance(&format!("roles-{n}")),
+            )
+            .unwrap_or_else(|e| panic!("{e}"));
+    }
+
+    // the reader gets the profile, from the command line too
+    let reader = PgStore::connect(&as_role("cubecal_reader"), Some("reader-pw".into()))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let (p, _) = reader.current_profile(id).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(p.identity.id, id);
+    let out = Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args(["profile", "get", id, "--format", "ros", "--store"])
+        .arg(as_role("cubecal_reader"))
+        .env("PGPASSWORD", "reader-pw")
+        .output()
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert!(out.status.success(), "{}", text(&out.stderr));
+
+    // and cannot commit or roll back: refused by the database, nothing changed
+    for attempt in [
+        reader
+            .commit_run(&profile(id, 2, true), &opts(), &provenance("roles-2"))
+            .map(|_| ()),
+        reader.roll_back(id).map(|_| ()),
+    ] {
+        match attempt {
+            Err(e @ ProfileError::Database { .. }) => {
+                let chain = format!("{e}: {:?}", std::error::Error::source(&e));
+                assert!(chain.contains("permission denied"), "{chain}");
+            }
+            other => panic!("expected a refusal, got {other:?}"),
+        }
+    }
+    assert_runs(
+        &station,
+        id,
+        &[("roles-0", "history"), ("roles-1", "current")],
+    );
 }
