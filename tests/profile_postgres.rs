@@ -537,3 +537,94 @@ fn a_read_only_role_can_get_profiles_but_not_commit() {
         &[("roles-0", "history"), ("roles-1", "current")],
     );
 }
+
+/// `cubecal calibrate --replay fixtures/sessions/demo --out DIR/RUN --store URL` (password from
+/// `PGPASSWORD`) with `extra` arguments.
+fn calibrate_into(
+    url: &str,
+    dir: &std::path::Path,
+    run: &str,
+    extra: &[&str],
+) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args([
+            "calibrate",
+            "--json",
+            "--replay",
+            "fixtures/sessions/demo",
+            "--out",
+        ])
+        .arg(dir.join(run))
+        .args(["--store", url])
+        .args(extra)
+        .env("PGPASSWORD", pg::PASSWORD)
+        .output()
+        .unwrap_or_else(|e| panic!("running cubecal: {e}"))
+}
+
+#[test]
+fn the_station_commits_a_passing_run_with_its_provenance_and_a_failing_one_not_at_all() {
+    let Some((store, url)) = store("t_station") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let ok = calibrate_into(&url, dir.path(), "a", &[]);
+    assert_eq!(ok.status.code(), Some(0), "{}", text(&ok.stderr));
+    let last: serde_json::Value = text(&ok.stdout)
+        .lines()
+        .last()
+        .and_then(|l| serde_json::from_str(l).ok())
+        .unwrap_or_else(|| panic!("no result line"));
+    let location = last["profile"].as_str().unwrap_or_default();
+    assert!(
+        location.starts_with(&url) && location.contains("#version-"),
+        "{location}"
+    );
+    assert!(!text(&ok.stdout).contains(pg::PASSWORD));
+
+    let list = store.list_cameras().unwrap_or_else(|e| panic!("{e}"));
+    let [camera] = list.as_slice() else {
+        panic!("expected one camera, got {list:?}")
+    };
+    let history = store
+        .history(&camera.folder)
+        .unwrap_or_else(|e| panic!("{e}"));
+    let [v] = history.as_slice() else {
+        panic!("expected one version, got {history:?}")
+    };
+    assert_eq!(v.state, "current");
+    assert_eq!(
+        v.report.as_deref(),
+        Some(dir.path().join("a").to_string_lossy().as_ref())
+    );
+    assert!(
+        !v.station.is_empty() && v.rig_name == "cube-outside",
+        "{v:?}"
+    );
+    let run_profile =
+        std::fs::read(dir.path().join("a/profile.json")).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(v.run_id, cubecal::profile::store::sha256_hex(&run_profile));
+
+    // rejected by a stricter verdict: exit 6 and nothing reaches the database
+    let bad = calibrate_into(&url, dir.path(), "b", &["--set", "qa.min_coverage=0.9"]);
+    assert_eq!(bad.status.code(), Some(6), "{}", text(&bad.stderr));
+    assert_eq!(store.history(&camera.folder).map(|h| h.len()).ok(), Some(1));
+
+    // the database unreachable: the run says so (exit 7) and names the store, not a password
+    let closed = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .unwrap_or_else(|e| panic!("{e}"));
+    let nowhere = format!("postgres://{}@127.0.0.1:{closed}/t_station", pg::ADMIN);
+    let down = calibrate_into(&nowhere, dir.path(), "c", &[]);
+    assert_eq!(down.status.code(), Some(7), "{}", text(&down.stderr));
+    assert!(
+        text(&down.stderr).contains(&nowhere),
+        "{}",
+        text(&down.stderr)
+    );
+    assert!(
+        dir.path().join("c/profile.json").is_file(),
+        "the run keeps its profile.json"
+    );
+}
