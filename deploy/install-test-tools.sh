@@ -3,16 +3,20 @@
 #   python3-opencv                       cv2.FileStorage + cv2.projectPoints (OpenCV FileStorage YAML)
 #   python3-camera-calibration-parsers   ROS's camera_info YAML parser (camera_calibration_parsers)
 #   python3-mrcal                        mrcal.cameramodel + mrcal.project (.cameramodel)
+#   postgresql                           initdb + pg_ctl for the throw-away cluster of the PostgreSQL
+#                                        profile store's tests (tests/profile_postgres.rs,
+#                                        tests/support/pg.rs; found under /usr/lib/postgresql/N/bin)
 # All three are Debian packages (bookworm: OpenCV 4.6, ROS parsers 1.12, mrcal 2.2) for the system
 # python, /usr/bin/python3, which the tests use first (CUBECAL_PYTHON overrides). Idempotent, quiet when
 # everything is present; exits non-zero if a tool still cannot be imported afterwards.
 set -euo pipefail
 
-packages=(python3-opencv python3-camera-calibration-parsers python3-mrcal)
+packages=(python3-opencv python3-camera-calibration-parsers python3-mrcal postgresql)
 check='import cv2, mrcal, camera_calibration_parsers'
 python="${CUBECAL_PYTHON:-/usr/bin/python3}"
 
-if "$python" -c "$check" >/dev/null 2>&1; then exit 0; fi
+have_initdb() { compgen -G '/usr/lib/postgresql/*/bin/initdb' >/dev/null; }
+if "$python" -c "$check" >/dev/null 2>&1 && have_initdb; then exit 0; fi
 
 missing=()
 for p in "${packages[@]}"; do
@@ -28,6 +32,10 @@ if [ "${#missing[@]}" -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
 fi
 
+if ! have_initdb; then
+  echo "install-test-tools: no initdb under /usr/lib/postgresql/*/bin after installing postgresql" >&2
+  exit 1
+fi
 if ! "$python" -c "$check"; then
   echo "install-test-tools: $python still cannot import cv2, mrcal and camera_calibration_parsers" >&2
   exit 1

@@ -41,8 +41,10 @@ pub struct CalibrateArgs {
     pub rig: Option<PathBuf>,
     #[command(flatten)]
     pub board: super::BoardArgs,
-    /// Profile store directory (output.store): a passing run's profile is committed there. Without
-    /// it the profile is only RUN_DIR/profile.json (printed with how to store or export it).
+    /// Profile store (output.store): a directory or postgres://USER@HOST/DB (password from
+    /// output.store_password_file or PGPASSWORD, never the URL). A passing run's profile is
+    /// committed there; without it the profile is only RUN_DIR/profile.json (printed with how to
+    /// store or export it).
     #[arg(long)]
     pub store: Option<PathBuf>,
     /// Run directory to create (output.out). Default: cubecal-runs/<UTC time>.

@@ -1,5 +1,7 @@
-//! `cubecal profile list | show | export | diff | rollback`: read and manage the per-device profile
-//! store (`cubecal::profile`).
+//! `cubecal profile list | show | export (get) | diff | rollback | migrate`: read and manage the
+//! per-device profile store (`cubecal::profile`): a directory, or a PostgreSQL database named by
+//! `--store postgres://USER@HOST/DB` (password from `--store-password-file` or `PGPASSWORD`, never the
+//! URL). `migrate` applies the database schema's migrations.
 //!
 //! `DEVICE` is a camera identity (`usb:046d:0825:SERIAL`) or its folder name in the store (as `list`
 //! prints it); `show`, `export` and `diff` also take a profile file (a run's `profile.json`), read
@@ -7,16 +9,19 @@
 //! and must not reach the terminal raw. `--json` prints the same data as JSON (`show --json` prints
 //! the stored document itself).
 //!
-//! Exit codes: 0 ok; 3 missing store, unknown device, unreadable or newer-format profile, nothing to roll back, a
-//! model an export format cannot express; 4 the camera's profile is being written by another process.
+//! Exit codes: 0 ok; 3 missing store, unknown device, unreadable or newer-format profile, nothing to
+//! roll back, a model an export format cannot express, a password in the store URL, a database schema
+//! not migrated or newer than this cubecal; 4 the camera's profile is being written by another
+//! process (or station); 7 the database cannot be reached or fails a statement.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use cubecal::profile::export::Format;
+use cubecal::profile::postgres::PgStore;
 use cubecal::profile::store::sha256_hex;
-use cubecal::profile::{self, Change, Profile, Store, display_identity};
+use cubecal::profile::{self, Change, Profile, ProfileStore, StoreLocation, display_identity};
 
 use super::Output;
 
@@ -25,10 +30,13 @@ pub const DEFAULT_STORE: &str = "/var/lib/cubecal/profiles";
 
 #[derive(Debug, clap::Args)]
 pub struct StoreArg {
-    /// Profile store directory; it must exist (`calibrate --store DIR` creates it with the first
-    /// passing run).
+    /// Profile store: a directory, which must exist (`calibrate --store DIR` creates it with the
+    /// first passing run), or a PostgreSQL URL postgres://USER@HOST[:PORT]/DB (no password).
     #[arg(long, default_value = DEFAULT_STORE)]
     pub store: PathBuf,
+    /// File whose first line is the PostgreSQL password (default: the PGPASSWORD variable).
+    #[arg(long)]
+    pub store_password_file: Option<PathBuf>,
 }
 
 #[derive(Debug, clap::Subcommand)]
@@ -42,7 +50,9 @@ pub enum ProfileCommand {
         #[command(flatten)]
         store: StoreArg,
     },
-    /// Export a camera's current profile, or a profile file (a run's profile.json), for another tool.
+    /// Export a camera's current profile, or a profile file (a run's profile.json), for another tool
+    /// (`get` is the same command).
+    #[command(visible_alias = "get")]
     Export {
         /// Camera identity or folder name, or a profile file.
         device: String,
@@ -72,36 +82,87 @@ pub enum ProfileCommand {
         #[command(flatten)]
         store: StoreArg,
     },
+    /// Create or upgrade a PostgreSQL store's tables (the migrations in migrations/postgres/).
+    Migrate(StoreArg),
 }
 
 pub fn run(cmd: ProfileCommand, out: Output) -> anyhow::Result<u8> {
     match cmd {
-        ProfileCommand::List(s) => list(&open(&s.store)?, out),
-        ProfileCommand::Show { device, store } => show(&store.store, &device, out),
+        ProfileCommand::List(s) => list(&*open(&s)?, out),
+        ProfileCommand::Show { device, store } => show(&store, &device, out),
         ProfileCommand::Export {
             device,
             format,
             out: file,
             store,
-        } => export(&store.store, &device, format, file.as_deref()),
+        } => export(&store, &device, format, file.as_deref()),
         ProfileCommand::Diff {
             a,
             b,
             jump_sigma,
             store,
-        } => diff(&store.store, &a, &b, jump_sigma, out),
-        ProfileCommand::Rollback { device, store } => rollback(&open(&store.store)?, &device, out),
+        } => diff(&store, &a, &b, jump_sigma, out),
+        ProfileCommand::Rollback { device, store } => rollback(&*open(&store)?, &device, out),
+        ProfileCommand::Migrate(store) => migrate(&store, out),
     }
 }
 
-fn open(dir: &Path) -> anyhow::Result<Store> {
-    Store::open_existing(dir)
-        .with_context(|| format!("opening the profile store {}", dir.display()))
+fn open(s: &StoreArg) -> anyhow::Result<Box<dyn ProfileStore>> {
+    let store: Result<Box<dyn ProfileStore>, profile::ProfileError> =
+        match StoreLocation::parse(&s.store) {
+            // Reading commands never create a store: a missing directory is named as such.
+            StoreLocation::Dir(dir) => profile::store::Store::open_existing(&dir)
+                .map(|st| Box::new(st) as Box<dyn ProfileStore>),
+            StoreLocation::Postgres(_) => {
+                profile::open_store(&s.store, s.store_password_file.as_deref())
+            }
+        };
+    store.with_context(|| format!("opening the profile store {}", describe(&s.store)))
+}
+
+/// The store as it may be shown (a URL without password or options; the URL is refused when it holds
+/// a password, but its text must not reach the terminal either).
+fn describe(store: &Path) -> String {
+    match StoreLocation::parse(store) {
+        StoreLocation::Dir(d) => d.display().to_string(),
+        StoreLocation::Postgres(url) => profile::postgres::redact(&url),
+    }
 }
 
 #[allow(clippy::print_stdout)]
-fn list(store: &Store, out: Output) -> anyhow::Result<u8> {
-    let entries = store.list()?;
+fn migrate(s: &StoreArg, out: Output) -> anyhow::Result<u8> {
+    let StoreLocation::Postgres(url) = StoreLocation::parse(&s.store) else {
+        anyhow::bail!(UsageError(format!(
+            "{} is a file store, which has no schema to migrate; give --store postgres://…",
+            s.store.display()
+        )));
+    };
+    let password = profile::backend::read_password(s.store_password_file.as_deref())?;
+    let store = PgStore::connect_unchecked(&url, password)?;
+    let applied = store.migrate()?;
+    let version = store.schema_version()?;
+    if out.json {
+        println!(
+            "{}",
+            serde_json::json!({ "store": store.describe(), "applied": applied, "schema_version": version })
+        );
+    } else if applied.is_empty() {
+        println!(
+            "{}: schema at version {version}, up to date",
+            store.describe()
+        );
+    } else {
+        println!(
+            "{}: applied migrations {applied:?}; schema at version {version}",
+            store.describe()
+        );
+    }
+    Ok(cubecal::exit::SUCCESS)
+}
+
+#[allow(clippy::print_stdout)]
+fn list(store: &dyn ProfileStore, out: Output) -> anyhow::Result<u8> {
+    let entries = store.list_cameras()?;
     if out.json {
         let rows: Vec<serde_json::Value> = entries
             .iter()
@@ -166,8 +227,8 @@ fn fmt_change(c: &Change) -> String {
 }
 
 #[allow(clippy::print_stdout)]
-fn show(store_dir: &Path, device: &str, out: Output) -> anyhow::Result<u8> {
-    let (p, bytes) = load(store_dir, device)?;
+fn show(store: &StoreArg, device: &str, out: Output) -> anyhow::Result<u8> {
+    let (p, bytes) = load(store, device)?;
     if out.json {
         std::io::stdout()
             .write_all(&bytes)
@@ -231,12 +292,12 @@ fn show(store_dir: &Path, device: &str, out: Output) -> anyhow::Result<u8> {
 }
 
 fn export(
-    store_dir: &Path,
+    store: &StoreArg,
     device: &str,
     format: Format,
     file: Option<&Path>,
 ) -> anyhow::Result<u8> {
-    let (p, _) = load(store_dir, device)?;
+    let (p, _) = load(store, device)?;
     let text = format.render(&p)?;
     match file {
         Some(path) => {
@@ -251,7 +312,7 @@ fn export(
 
 /// A profile named by a file path (a run's `profile.json`, a history file) or by a camera in the
 /// store, with the document's bytes.
-fn load(store_dir: &Path, what: &str) -> anyhow::Result<(Profile, Vec<u8>)> {
+fn load(store: &StoreArg, what: &str) -> anyhow::Result<(Profile, Vec<u8>)> {
     let path = Path::new(what);
     if path.is_file() {
         let bytes = std::fs::read(path).map_err(|source| profile::ProfileError::Read {
@@ -261,19 +322,19 @@ fn load(store_dir: &Path, what: &str) -> anyhow::Result<(Profile, Vec<u8>)> {
         let p = profile::parse_document(path, &bytes)?;
         return Ok((p, bytes));
     }
-    Ok(open(store_dir)?.current(what)?)
+    Ok(open(store)?.current_profile(what)?)
 }
 
 #[allow(clippy::print_stdout)]
-fn diff(store_dir: &Path, a: &str, b: &str, jump_sigma: f64, out: Output) -> anyhow::Result<u8> {
+fn diff(store: &StoreArg, a: &str, b: &str, jump_sigma: f64, out: Output) -> anyhow::Result<u8> {
     anyhow::ensure!(
         jump_sigma.is_finite() && jump_sigma > 0.0,
         UsageError(format!(
             "--jump-sigma must be a positive number, not {jump_sigma}"
         ))
     );
-    let (pa, bytes_a) = load(store_dir, a)?;
-    let (pb, _) = load(store_dir, b)?;
+    let (pa, bytes_a) = load(store, a)?;
+    let (pb, _) = load(store, b)?;
     let change = profile::compare(&pa, &sha256_hex(&bytes_a), &pb, jump_sigma);
     if out.json {
         println!("{}", serde_json::to_string(&change)?);
@@ -284,17 +345,17 @@ fn diff(store_dir: &Path, a: &str, b: &str, jump_sigma: f64, out: Output) -> any
 }
 
 #[allow(clippy::print_stdout)]
-fn rollback(store: &Store, device: &str, out: Output) -> anyhow::Result<u8> {
-    let r = store.rollback(device)?;
+fn rollback(store: &dyn ProfileStore, device: &str, out: Output) -> anyhow::Result<u8> {
+    let r = store.roll_back(device)?;
     if out.json {
         println!("{}", serde_json::to_string(&r)?);
     } else {
         println!(
             "{}: restored the profile of {} (the profile of {} is kept in {})",
-            r.folder.display(),
+            r.folder,
             display_identity(&r.restored_created),
             display_identity(&r.replaced_created),
-            r.set_aside.display()
+            r.set_aside
         );
     }
     Ok(cubecal::exit::SUCCESS)

@@ -1,6 +1,8 @@
-//! Per-device profiles: what a passing calibration run leaves behind for one physical camera, a
-//! crash-safe versioned [`Store`] of them keyed by the camera's identity, and exports that OpenCV, ROS
-//! and mrcal load ([`export`]).
+//! Per-device profiles: what a passing calibration run leaves behind for one physical camera, stores
+//! of them keyed by the camera's identity behind one trait ([`ProfileStore`], [`backend`]) — the
+//! crash-safe versioned file store ([`Store`], [`store`]) for one station and PostgreSQL
+//! ([`postgres::PgStore`]) for a fleet — and exports that OpenCV, ROS, mrcal and COLMAP load
+//! ([`export`]).
 //!
 //! ## The document
 //! A profile is one JSON document: `{"format_version": 1, ...}` followed by the fields of [`Profile`]
@@ -34,9 +36,12 @@ use crate::calib::report::CalibrationReport;
 use crate::capture::v4l2::{ControlSetting, DeviceInfo, Negotiated};
 use crate::run::Verdict;
 
+pub mod backend;
 pub mod export;
+pub mod postgres;
 pub mod store;
 
+pub use backend::{Committed, ProfileStore, Provenance, RolledBack, StoreLocation, open_store};
 pub use store::{CommitOptions, CommitOutcome, ListEntry, RollbackOutcome, Store};
 
 /// The document format this cubecal writes and the newest it reads.
@@ -208,6 +213,18 @@ pub enum ProfileError {
     /// Rollback asked for, but there is no earlier profile.
     #[error("no earlier profile of '{}' to roll back to", .identity.escape_debug())]
     NoHistory { identity: String },
+    /// The database cannot be reached, or refused or failed a statement. Nothing was committed.
+    #[error("profile store {store}: {action} failed")]
+    Database {
+        store: String,
+        action: String,
+        #[source]
+        source: ::postgres::Error,
+    },
+    /// The store cannot be used as given: a password in its URL, a schema not yet migrated or newer
+    /// than this cubecal knows.
+    #[error("profile store {store}: {reason}")]
+    Unusable { store: String, reason: String },
 }
 
 impl ProfileError {
@@ -217,6 +234,8 @@ impl ProfileError {
             ProfileError::Rejected { .. } => crate::exit::QA_REJECTED,
             ProfileError::Busy { .. } => crate::exit::DEVICE,
             ProfileError::Write { .. } => crate::exit::INTERNAL,
+            ProfileError::Database { .. } => crate::exit::IO,
+            ProfileError::Unusable { .. } => crate::exit::BAD_INPUT,
             ProfileError::Read { .. }
             | ProfileError::Parse { .. }
             | ProfileError::NewerVersion { .. }
@@ -467,6 +486,46 @@ pub fn compare(
         jump_sigma,
         notes,
     }
+}
+
+/// Refuse a failing run before any store is touched: a failed run never replaces a passing profile.
+pub fn check_passing(profile: &Profile) -> Result<(), ProfileError> {
+    if profile.verdict.pass {
+        return Ok(());
+    }
+    let failures: Vec<String> = profile.verdict.failures().map(|c| c.name.clone()).collect();
+    Err(ProfileError::Rejected {
+        identity: profile.identity.id.clone(),
+        failures: if failures.is_empty() {
+            vec!["no checks".to_string()]
+        } else {
+            failures
+        },
+    })
+}
+
+/// The document a store commits: `profile` with its [`Change`] from `previous` (its document bytes and
+/// parsed profile), and the document's bytes. Refused as [`ProfileError::Invalid`] when the document
+/// does not survive a JSON round trip; `path` names it in that check's parse errors. Every store
+/// commits through this, so the stored bytes are the same whichever store holds them.
+pub fn prepare_document(
+    path: &std::path::Path,
+    profile: &Profile,
+    previous: Option<(&[u8], &Profile)>,
+    options: &CommitOptions,
+) -> Result<(Profile, Vec<u8>), ProfileError> {
+    let mut doc = profile.clone();
+    doc.change = previous
+        .map(|(bytes, prev)| compare(prev, &store::sha256_hex(bytes), profile, options.jump_sigma));
+    let bytes = to_document(&doc);
+    if parse_document(path, &bytes).ok().as_ref() != Some(&doc) {
+        return Err(ProfileError::Invalid {
+            field: "profile".into(),
+            reason: "does not survive a JSON round trip (a NaN or infinite σ or covariance?)"
+                .into(),
+        });
+    }
+    Ok((doc, bytes))
 }
 
 /// Check what the store relies on: a non-empty identity, finite intrinsics, a positive image size, a

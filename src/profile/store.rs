@@ -31,7 +31,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use serde::Serialize;
 use sha2::{Digest, Sha256};
 
-use super::{Change, Profile, ProfileError, compare, parse_document, to_document, validate};
+use super::{
+    Change, Profile, ProfileError, check_passing, parse_document, prepare_document, validate,
+};
 
 /// The current profile's file name.
 pub const CURRENT: &str = "current.json";
@@ -394,18 +396,7 @@ impl Store {
         options: &CommitOptions,
     ) -> Result<CommitOutcome, ProfileError> {
         let identity = profile.identity.id.as_str();
-        if !profile.verdict.pass {
-            let failures: Vec<String> =
-                profile.verdict.failures().map(|c| c.name.clone()).collect();
-            return Err(ProfileError::Rejected {
-                identity: identity.to_string(),
-                failures: if failures.is_empty() {
-                    vec!["no checks".to_string()]
-                } else {
-                    failures
-                },
-            });
-        }
+        check_passing(profile)?;
         validate(profile)?;
         let folder = self.device_dir(identity);
         let history = folder.join(HISTORY);
@@ -416,18 +407,12 @@ impl Store {
 
         let current = folder.join(CURRENT);
         let previous = Self::read_current(&folder, identity)?;
-        let mut doc = profile.clone();
-        doc.change = previous
-            .as_ref()
-            .map(|(bytes, prev)| compare(prev, &sha256_hex(bytes), profile, options.jump_sigma));
-        let bytes = to_document(&doc);
-        if parse_document(&current, &bytes).ok().as_ref() != Some(&doc) {
-            return Err(ProfileError::Invalid {
-                field: "profile".into(),
-                reason: "does not survive a JSON round trip (a NaN or infinite σ or covariance?)"
-                    .into(),
-            });
-        }
+        let (doc, bytes) = prepare_document(
+            &current,
+            profile,
+            previous.as_ref().map(|(b, p)| (b.as_slice(), p)),
+            options,
+        )?;
         let archived = match &previous {
             Some((pbytes, prev)) => Some(self.archive(&folder, pbytes, &prev.created)?),
             None => None,

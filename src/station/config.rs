@@ -316,8 +316,11 @@ impl Default for QaSection {
 pub struct OutputSection {
     /// Run directory (created; must not already hold a run).
     pub out: Option<PathBuf>,
-    /// Profile store directory.
+    /// Profile store: a directory, or a PostgreSQL URL `postgres://USER@HOST[:PORT]/DB` without a
+    /// password (see [`crate::profile::backend`]).
     pub store: Option<PathBuf>,
+    /// File whose first line is the PostgreSQL password (else `PGPASSWORD` is used).
+    pub store_password_file: Option<PathBuf>,
 }
 
 /// `[rig]`.

@@ -803,15 +803,26 @@ fn write_profile(
     // The store's document format (with format_version), so that `cubecal profile diff` and
     // `cubecal report` read a run's profile.json like any stored profile.
     write_file(&path, &crate::profile::to_document(&profile))?;
-    let Some(store_dir) = &spec.config.output.store else {
+    let Some(store_value) = &spec.config.output.store else {
         return Ok(path);
     };
-    let store = crate::profile::Store::open(store_dir)?;
-    let outcome = store.commit(
+    let store = crate::profile::open_store(
+        store_value,
+        spec.config.output.store_password_file.as_deref(),
+    )?;
+    let provenance = crate::profile::Provenance {
+        // the run's own profile.json (its creation time and session hash make it unique): a second
+        // commit of the same run stores nothing new
+        run_id: hex(&crate::profile::to_document(&profile)),
+        station: station_name(),
+        report: Some(spec.run_dir.display().to_string()),
+    };
+    let outcome = store.commit_run(
         &profile,
         &crate::profile::CommitOptions {
             jump_sigma: spec.config.qa.max_jump_sigma,
         },
+        &provenance,
     )?;
     if outcome.jump {
         result.notes.push(format!(
@@ -819,7 +830,18 @@ fn write_profile(
             spec.config.qa.max_jump_sigma
         ));
     }
-    Ok(outcome.current)
+    Ok(outcome.location)
+}
+
+/// The station's name in a profile's provenance: the host name (`/etc/hostname`, else `HOSTNAME`,
+/// else `unknown`).
+fn station_name() -> String {
+    std::fs::read_to_string("/etc/hostname")
+        .ok()
+        .map(|s| s.trim().to_string())
+        .filter(|s| !s.is_empty())
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .unwrap_or_else(|| "unknown".to_string())
 }
 
 /// `YYYY-MM-DDTHH-MM-SSZ` (UTC, file-name safe) for run directory names: RFC 3339 with `-` for `:`.
