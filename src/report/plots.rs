@@ -61,7 +61,7 @@ fn boxed<E: Error + Send + Sync + 'static>(e: DrawingAreaErrorKind<E>) -> PlotEr
 
 /// Register the embedded DejaVu Sans as plotters' `sans-serif` (once per process): the bitmap
 /// backend draws text with it, and both backends measure text with it.
-fn register_font() -> Result<(), PlotError> {
+pub(crate) fn register_font() -> Result<(), PlotError> {
     static DONE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     let ok = *DONE.get_or_init(|| {
         plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular())

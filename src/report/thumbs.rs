@@ -110,6 +110,8 @@ pub fn thumbnail(
     det: &FrameDetection,
     rig: &Rig,
 ) -> Result<RgbImage, PlotError> {
+    // The legend's text needs the font, which the plots (drawn meanwhile) may not have registered yet.
+    super::plots::register_font()?;
     let (w, _) = frame.dimensions();
     let k = (f64::from(w) / f64::from(THUMB_WIDTH)).round().max(1.0) as u32;
     let small = downscale(frame, k);
