@@ -513,28 +513,9 @@ fn thumbnails(data: &RunData) -> Result<Vec<Thumb>, ReportError> {
             png,
         })
     };
-    let workers = std::thread::available_parallelism()
-        .map_or(1, |n| n.get())
-        .clamp(1, 4);
-    let chunk = outcomes.len().div_ceil(workers).max(1);
-    let parts: Vec<Result<Vec<Thumb>, ReportError>> = std::thread::scope(|scope| {
-        let handles: Vec<_> = outcomes
-            .chunks(chunk)
-            .map(|part| scope.spawn(|| part.iter().map(one).collect::<Result<Vec<_>, _>>()))
-            .collect();
-        handles
-            .into_iter()
-            .map(|h| match h.join() {
-                Ok(r) => r,
-                Err(panic) => std::panic::resume_unwind(panic),
-            })
-            .collect()
-    });
-    let mut out = Vec::with_capacity(outcomes.len());
-    for p in parts {
-        out.extend(p?);
-    }
-    Ok(out)
+    crate::render::parallel_map(outcomes.len(), |i| one(&outcomes[i]))
+        .into_iter()
+        .collect()
 }
 
 const CSS: &str = "body{font-family:sans-serif;margin:24px;color:#222;max-width:1500px}\
