@@ -430,6 +430,20 @@ impl Camera {
     /// method from `(x'', y'')` with at most [`UNDISTORT_MAX_ITERATIONS`] steps. Reports
     /// non-convergence (and a fold in the distortion, where the inverse is not unique) as an error.
     pub fn undistort(&self, xd: f64, yd: f64) -> Result<Vector2<f64>, CameraError> {
+        let start = Vector2::new(xd, yd);
+        self.undistort_from(xd, yd, start).map(|(p, _)| p)
+    }
+
+    /// [`undistort`](Camera::undistort) with Newton's method started from `start` instead of
+    /// `(x'', y'')`, returning also the Jacobian `∂(x'', y'')/∂(x, y)` at the solution. From the
+    /// solution of a nearby point moved by that Jacobian's inverse (as when undistorting every
+    /// pixel of a window in turn), it converges in one or two steps instead of four to eight.
+    pub fn undistort_from(
+        &self,
+        xd: f64,
+        yd: f64,
+        start: Vector2<f64>,
+    ) -> Result<(Vector2<f64>, Matrix2<f64>), CameraError> {
         let target = Vector2::new(xd, yd);
         let not_converged = |iterations: usize, residual: f64| {
             let px = self.to_pixel(&target);
@@ -444,9 +458,13 @@ impl Camera {
             return Err(not_converged(0, f64::NAN));
         }
         if self.model == DistortionModel::Pinhole {
-            return Ok(target);
+            return Ok((target, Matrix2::identity()));
         }
-        let mut p = target;
+        let mut p = if start.x.is_finite() && start.y.is_finite() {
+            start
+        } else {
+            target
+        };
         let mut residual = f64::INFINITY;
         for it in 0..UNDISTORT_MAX_ITERATIONS {
             let (d, j, _) = self.distort_with_jacobians(p.x, p.y);
@@ -458,7 +476,7 @@ impl Camera {
                 if j.determinant() <= 0.0 {
                     return Err(not_converged(it, residual));
                 }
-                return Ok(p);
+                return Ok((p, j));
             }
             let step = match j.try_inverse() {
                 Some(inv) => inv * r,

@@ -188,6 +188,20 @@ const CASES: &[Case] = &[
     },
     Case {
         command: "calibrate",
+        failure: "`--images`: not one photo usable (missing, empty, not an image)",
+        code: 3,
+        args: &[
+            "calibrate",
+            "--rig",
+            RIG,
+            "--images",
+            "{tmp}/missing.jpg",
+            "--out",
+            "{tmp}/run",
+        ],
+    },
+    Case {
+        command: "calibrate",
         failure: "camera or turntable missing, busy or failing",
         code: 4,
         args: &[

@@ -108,6 +108,11 @@ pub enum CaptureError {
     /// A recorded session is missing, incomplete, altered or cannot be written.
     #[error(transparent)]
     Session(#[from] session::SessionError),
+    /// A photo the user gave cannot be used (missing, unreadable, empty, not an image, another
+    /// size): bad input. From [`FrameSource::grab`] it concerns that one frame — the station
+    /// rejects the view with `reason` and goes on; from opening a source, no photo was usable.
+    #[error("{path}: {reason}")]
+    Image { path: String, reason: String },
 }
 
 /// `ENODEV`: the device was removed.
@@ -149,7 +154,7 @@ impl CaptureError {
             | CaptureError::Busy { .. }
             | CaptureError::Unsupported { .. }
             | CaptureError::Control { .. } => crate::exit::DEVICE,
-            CaptureError::EndOfStream { .. } => crate::exit::BAD_INPUT,
+            CaptureError::EndOfStream { .. } | CaptureError::Image { .. } => crate::exit::BAD_INPUT,
             CaptureError::Session(e) => e.exit_code(),
         }
     }
@@ -164,6 +169,25 @@ pub trait FrameSource {
     /// Drop every frame already queued (e.g. captured while the turntable was moving); returns how
     /// many were dropped.
     fn flush(&mut self) -> Result<usize, CaptureError>;
+    /// The file behind the frame the last `grab` returned or failed on, for sources that read files
+    /// a user gave (photos, and sessions that recorded photos): the recorder keeps its bytes as they
+    /// are instead of encoding the decoded frame. `None` (the default) for cameras and renderers.
+    fn take_source_file(&mut self) -> Option<SourceFile> {
+        None
+    }
+}
+
+/// A user's image file as it was read, to be recorded byte for byte (see
+/// [`FrameSource::take_source_file`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SourceFile {
+    /// The name the file is known by in every output: its file name, or the path as given when
+    /// two files of a run share a file name ([`images::labels`]).
+    pub name: String,
+    /// Its extension, lower case (`jpg`, `png`, `tif`, …), for the recorded copy's file name.
+    pub extension: String,
+    /// Its bytes, or why it could not be read (missing, a folder, no permission).
+    pub bytes: Result<Vec<u8>, String>,
 }
 
 /// A way in which a [`FrameSource`] broke the trait's contract (see [`check_contract`]).

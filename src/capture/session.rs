@@ -6,12 +6,19 @@
 //! session/
 //!   frame_000000.png     8-bit gray (16-bit gray PNGs are accepted on replay and reduced to 8 bits)
 //!   frame_000001.png
+//!   frame_000002.jpg     a user's photo, its bytes as given (photo runs)
 //!   manifest.json        written LAST, atomically (temp file + rename)
 //! ```
 //! The manifest holds the source (identity, name, size, format), optional device details and the
 //! negotiated capture format, the control values the driver accepted, the rig (optional path/name),
 //! free-form config, and per frame: file name, sequence, timestamp (ns), optional turntable angle and
-//! the SHA-256 of the PNG file's bytes.
+//! the SHA-256 of the file's bytes.
+//!
+//! A photo run records the user's files as they are ([`SessionWriter::add_source_file`]): the
+//! entry's `source` names the photo (as in the run's outputs), its file keeps the photo's extension
+//! and bytes, and replay decodes it with [`super::images::decode`], as the photo run did. A photo
+//! that could not be read has an entry with its `error` and no file, so that a replay rejects that
+//! view for the same reason.
 //!
 //! Because the manifest is written last, a session whose recording was interrupted has no manifest and
 //! is refused ([`SessionError::NoManifest`]); a frame file that is missing, or whose bytes do not match
@@ -24,7 +31,7 @@ use std::time::Duration;
 use sha2::{Digest, Sha256};
 
 use super::v4l2::{ControlSetting, DeviceInfo, Negotiated};
-use super::{CaptureError, Frame, FrameSource, GrayImage, SourceInfo};
+use super::{CaptureError, Frame, FrameSource, GrayImage, SourceFile, SourceInfo};
 
 /// Name of the manifest inside a session directory.
 pub const MANIFEST: &str = "manifest.json";
@@ -126,8 +133,15 @@ pub struct FrameEntry {
     /// Turntable angle in degrees when the frame was taken.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub angle_deg: Option<f64>,
-    /// Lower-case hex SHA-256 of the PNG file's bytes.
+    /// Lower-case hex SHA-256 of the file's bytes (empty with `error`).
     pub sha256: String,
+    /// The user's photo this frame is, by the name the run's outputs give it; its bytes are recorded
+    /// as they were (any image format), not as an encoded gray frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source: Option<String>,
+    /// Why the photo `source` could not be read when recorded (then `file` is empty).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
 }
 
 /// Everything known about a session except its frames.
@@ -196,7 +210,75 @@ pub struct SessionWriter {
     outcome: Option<(bool, Option<String>)>,
 }
 
-type Job = (usize, Frame, Option<f64>);
+type Job = (usize, Payload, Option<f64>);
+
+/// What a recorded frame is made from.
+#[derive(Debug)]
+enum Payload {
+    /// A camera's (or renderer's) frame, encoded as gray PNG.
+    Encode(Frame),
+    /// A user's file, copied as it is (or its read error recorded).
+    Copy {
+        file: SourceFile,
+        sequence: u64,
+        timestamp: Duration,
+    },
+}
+
+/// The session file name of a user's file recorded as frame `index` (empty when it was unreadable).
+fn copy_name(index: usize, file: &SourceFile) -> String {
+    if file.bytes.is_ok() {
+        format!("frame_{index:06}.{}", file.extension)
+    } else {
+        String::new()
+    }
+}
+
+impl Payload {
+    /// The name of the file this payload is written to (empty when it has none).
+    fn file_name(&self, index: usize) -> String {
+        match self {
+            Payload::Encode(_) => format!("frame_{index:06}.png"),
+            Payload::Copy { file, .. } => copy_name(index, file),
+        }
+    }
+
+    fn write(
+        self,
+        dir: &Path,
+        index: usize,
+        angle_deg: Option<f64>,
+    ) -> Result<FrameEntry, SessionError> {
+        match self {
+            Payload::Encode(frame) => write_frame_file(dir, index, &frame, angle_deg),
+            Payload::Copy {
+                file,
+                sequence,
+                timestamp,
+            } => {
+                let mut entry = FrameEntry {
+                    file: copy_name(index, &file),
+                    sequence,
+                    timestamp_ns: u64::try_from(timestamp.as_nanos()).unwrap_or(u64::MAX),
+                    angle_deg,
+                    sha256: String::new(),
+                    source: Some(file.name),
+                    error: None,
+                };
+                match file.bytes {
+                    Ok(bytes) => {
+                        let path = dir.join(&entry.file);
+                        std::fs::write(&path, &bytes)
+                            .map_err(|source| SessionError::Write { path, source })?;
+                        entry.sha256 = sha256_hex(&bytes);
+                    }
+                    Err(e) => entry.error = Some(e),
+                }
+                Ok(entry)
+            }
+        }
+    }
+}
 
 #[derive(Debug)]
 struct Worker {
@@ -242,6 +324,8 @@ fn write_frame_file(
         timestamp_ns: u64::try_from(frame.timestamp.as_nanos()).unwrap_or(u64::MAX),
         angle_deg,
         sha256: sha256_hex(&png),
+        source: None,
+        error: None,
     })
 }
 
@@ -280,11 +364,8 @@ impl SessionWriter {
         let thread = std::thread::Builder::new()
             .name("session-writer".into())
             .spawn(move || {
-                for (index, frame, angle) in rx {
-                    if tx
-                        .send(write_frame_file(&dir, index, &frame, angle))
-                        .is_err()
-                    {
+                for (index, payload, angle) in rx {
+                    if tx.send(payload.write(&dir, index, angle)).is_err() {
                         break;
                     }
                 }
@@ -312,16 +393,46 @@ impl SessionWriter {
     }
 
     /// Write one frame as PNG and remember its checksum (queued to the worker in background mode).
-    pub fn add_frame(&mut self, frame: &Frame, angle_deg: Option<f64>) -> Result<(), SessionError> {
+    /// Returns the frame's file name in the session.
+    pub fn add_frame(
+        &mut self,
+        frame: &Frame,
+        angle_deg: Option<f64>,
+    ) -> Result<String, SessionError> {
+        self.add(Payload::Encode(frame.clone()), angle_deg)
+    }
+
+    /// Record a user's file as it is: its bytes copied (checksummed) under the session's next frame
+    /// name with the file's extension, or, when it could not be read, an entry with the reason and
+    /// no file. `sequence` and `timestamp` are those of the frame decoded from it (or of its place
+    /// in the stream). Returns the file name in the session (empty for an unreadable file).
+    pub fn add_source_file(
+        &mut self,
+        file: SourceFile,
+        sequence: u64,
+        timestamp: Duration,
+        angle_deg: Option<f64>,
+    ) -> Result<String, SessionError> {
+        self.add(
+            Payload::Copy {
+                file,
+                sequence,
+                timestamp,
+            },
+            angle_deg,
+        )
+    }
+
+    fn add(&mut self, payload: Payload, angle_deg: Option<f64>) -> Result<String, SessionError> {
         let index = self.queued;
+        let name = payload.file_name(index);
         match &self.worker {
             None => {
-                let entry = write_frame_file(&self.dir, index, frame, angle_deg)?;
+                let entry = payload.write(&self.dir, index, angle_deg)?;
                 self.frames.push(entry);
             }
             Some(w) => {
-                let job = (index, frame.clone(), angle_deg);
-                if w.jobs.send(job).is_err() {
+                if w.jobs.send((index, payload, angle_deg)).is_err() {
                     // The worker stopped: its error is waiting in the results.
                     self.collect()?;
                 }
@@ -329,7 +440,7 @@ impl SessionWriter {
             }
         }
         self.queued += 1;
-        Ok(())
+        Ok(name)
     }
 
     /// Frames added so far (queued or written).
@@ -429,6 +540,9 @@ impl Session {
             manifest,
         };
         for (i, f) in session.manifest.frames.iter().enumerate() {
+            if f.error.is_some() {
+                continue; // a photo that could not be read: no file
+            }
             let plain = Path::new(&f.file)
                 .file_name()
                 .is_some_and(|n| n == std::ffi::OsStr::new(&f.file));
@@ -474,10 +588,42 @@ impl Session {
         Ok(bytes)
     }
 
+    /// A recorded photo (an entry with `source`): its file as the source gave it, and its decoded
+    /// frame or why it cannot be used ([`super::images::decode`], the photo run's own decoding).
+    pub fn photo(&self, i: usize) -> Result<(SourceFile, Result<Frame, String>), SessionError> {
+        let entry = &self.manifest.frames[i];
+        let name = entry.source.clone().unwrap_or_else(|| entry.file.clone());
+        let bytes = match &entry.error {
+            Some(e) => Err(e.clone()),
+            None => Ok(self.read_verified(i)?),
+        };
+        let src = &self.manifest.header.source;
+        let frame = match &bytes {
+            Ok(b) => super::images::decode(b, Some((src.width, src.height))).map(|image| Frame {
+                sequence: entry.sequence,
+                timestamp: Duration::from_nanos(entry.timestamp_ns),
+                image,
+            }),
+            Err(e) => Err(e.clone()),
+        };
+        let file = SourceFile {
+            name,
+            extension: super::images::extension(Path::new(&entry.file)),
+            bytes,
+        };
+        Ok((file, frame))
+    }
+
     /// Decode frame `i` (verified) to an 8-bit gray frame.
     pub fn frame(&self, i: usize) -> Result<Frame, SessionError> {
         let entry = &self.manifest.frames[i];
         let path = self.dir.join(&entry.file);
+        if entry.source.is_some() {
+            return self
+                .photo(i)?
+                .1
+                .map_err(|reason| SessionError::Invalid { path, reason });
+        }
         let bytes = self.read_verified(i)?;
         let img =
             image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).map_err(|e| {
@@ -527,6 +673,7 @@ impl Session {
 pub struct ReplaySource {
     session: Session,
     next: usize,
+    last: Option<SourceFile>,
 }
 
 impl ReplaySource {
@@ -535,6 +682,7 @@ impl ReplaySource {
         Ok(ReplaySource {
             session: Session::open(dir)?,
             next: 0,
+            last: None,
         })
     }
 
@@ -553,20 +701,33 @@ impl FrameSource for ReplaySource {
         self.session.manifest.header.source.clone()
     }
 
-    /// Returns the next recorded frame immediately (a recording never makes you wait).
+    /// Returns the next recorded frame immediately (a recording never makes you wait). A recorded
+    /// photo that cannot be used fails with [`CaptureError::Image`] and the reason the photo run gave.
     fn grab(&mut self, _timeout: Duration) -> Result<Frame, CaptureError> {
-        if self.next >= self.session.len() {
+        let Some(entry) = self.session.manifest.frames.get(self.next) else {
             return Err(CaptureError::EndOfStream {
                 source_name: self.session.dir.display().to_string(),
             });
-        }
-        let frame = self.session.frame(self.next)?;
+        };
+        let i = self.next;
         self.next += 1;
-        Ok(frame)
+        if entry.source.is_none() {
+            return Ok(self.session.frame(i)?);
+        }
+        let (file, frame) = self.session.photo(i)?;
+        let path = file.name.clone();
+        self.last = Some(file);
+        frame.map_err(|reason| CaptureError::Image { path, reason })
     }
 
     /// A recording has no frames queued behind the station's back: nothing to drop.
     fn flush(&mut self) -> Result<usize, CaptureError> {
         Ok(0)
+    }
+
+    /// Recorded photos are handed on as they are, so that a run replaying a photo session records
+    /// the same files.
+    fn take_source_file(&mut self) -> Option<SourceFile> {
+        self.last.take()
     }
 }

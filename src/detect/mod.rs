@@ -156,10 +156,19 @@ pub fn detect(
     let (mut faces, mut rejected) = label::label(img, rig, &completed);
     own_lattice::refit_on_own_lattice(img, &completed, &mut faces);
     if grids.is_empty() {
-        rejected.push(label::Rejection::frame(format!(
-            "no checkerboard grid found ({} isolated corners)",
-            corners.len()
-        )));
+        let busy = finder.busy_fraction();
+        rejected.push(label::Rejection::frame(if busy > front::MAX_BUSY_FRACTION {
+            format!(
+                "no checkerboard: the corner response is above its floor over {:.0} % of the frame (at most {:.0} % for a checkerboard's corners): noise or fine texture",
+                100.0 * busy,
+                100.0 * front::MAX_BUSY_FRACTION
+            )
+        } else {
+            format!(
+                "no checkerboard grid found ({} isolated corners)",
+                corners.len()
+            )
+        }));
     }
     Ok(FrameDetection {
         width: img.width(),

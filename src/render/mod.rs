@@ -497,11 +497,20 @@ pub fn render_radiance(
 
 /// Compute `f(row)` for `0..n` rows on the available cores (at most 4), in order.
 fn parallel_rows<T: Send>(n: usize, f: impl Fn(usize) -> T + Sync) -> Vec<T> {
+    if n < 16 {
+        return (0..n).map(&f).collect();
+    }
+    parallel_map(n, f)
+}
+
+/// Compute `f(i)` for `i` in `0..n` on the available cores (at most 4, each a contiguous share),
+/// in order. Used beyond the renderer for any per-item work (views refitted, report thumbnails).
+pub fn parallel_map<T: Send>(n: usize, f: impl Fn(usize) -> T + Sync) -> Vec<T> {
     let threads = std::thread::available_parallelism()
         .map(|t| t.get())
         .unwrap_or(1)
         .clamp(1, 4);
-    if threads == 1 || n < 16 {
+    if threads == 1 || n < 2 {
         return (0..n).map(&f).collect();
     }
     let chunk = n.div_ceil(threads);

@@ -203,8 +203,28 @@ pub fn esc(s: &str) -> String {
     o
 }
 
-/// Render the report of a loaded run. `png_dir` is the relative folder the PNG links point to.
+/// Render the report of a loaded run. `png_dir` is the relative folder the PNG links point to. The
+/// thumbnails (their frames decoded, scaled, drawn and encoded on threads of their own) are built
+/// beside the plots, not after them.
 pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportError> {
+    std::thread::scope(|scope| {
+        let thumbs = scope.spawn(|| {
+            let start = std::time::Instant::now();
+            thumbnails(data).map(|t| (t, start.elapsed()))
+        });
+        render_run_beside(data, png_dir, || match thumbs.join() {
+            Ok(r) => r,
+            Err(panic) => std::panic::resume_unwind(panic),
+        })
+    })
+}
+
+/// [`render_run`] with the thumbnails from `thumbs` (built meanwhile; with the time they took).
+fn render_run_beside(
+    data: &RunData,
+    png_dir: &str,
+    thumbs: impl FnOnce() -> Result<(Vec<Thumb>, std::time::Duration), ReportError>,
+) -> Result<RunReport, ReportError> {
     let mut timings = Vec::new();
     let mut clock = std::time::Instant::now();
     let mut lap = |name: &'static str, timings: &mut Vec<(&'static str, std::time::Duration)>| {
@@ -355,8 +375,9 @@ pub fn render_run(data: &RunData, png_dir: &str) -> Result<RunReport, ReportErro
     notes.extend(lens_notes);
 
     lap("distortion and uncertainty plots", &mut timings);
-    let thumbs = thumbnails(data)?;
-    lap("thumbnails", &mut timings);
+    let (thumbs, took) = thumbs()?;
+    lap("waiting for the thumbnails", &mut timings);
+    timings.push(("thumbnails (beside the plots)", took));
     let html = html(data, &plots, &thumbs, &stats, &grid, &notes, png_dir);
     lap("html", &mut timings);
     for (stage, t) in &timings {
@@ -510,28 +531,9 @@ fn thumbnails(data: &RunData) -> Result<Vec<Thumb>, ReportError> {
             png,
         })
     };
-    let workers = std::thread::available_parallelism()
-        .map_or(1, |n| n.get())
-        .clamp(1, 4);
-    let chunk = outcomes.len().div_ceil(workers).max(1);
-    let parts: Vec<Result<Vec<Thumb>, ReportError>> = std::thread::scope(|scope| {
-        let handles: Vec<_> = outcomes
-            .chunks(chunk)
-            .map(|part| scope.spawn(|| part.iter().map(one).collect::<Result<Vec<_>, _>>()))
-            .collect();
-        handles
-            .into_iter()
-            .map(|h| match h.join() {
-                Ok(r) => r,
-                Err(panic) => std::panic::resume_unwind(panic),
-            })
-            .collect()
-    });
-    let mut out = Vec::with_capacity(outcomes.len());
-    for p in parts {
-        out.extend(p?);
-    }
-    Ok(out)
+    crate::render::parallel_map(outcomes.len(), |i| one(&outcomes[i]))
+        .into_iter()
+        .collect()
 }
 
 const CSS: &str = "body{font-family:sans-serif;margin:24px;color:#222;max-width:1500px}\

@@ -154,8 +154,11 @@ fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), StationError> 
 struct PoseData {
     record: ViewRecord,
     view: Option<(View, Vec<String>)>,
-    /// The detection behind `view`, to fit its corners again once a lens is known.
+    /// The detection behind `view` and its frame, to fit its corners again once a lens is known.
     detection: Option<crate::detect::FrameDetection>,
+    image: Option<crate::capture::GrayImage>,
+    /// The pose's photo could not be used (missing, empty, not an image, another size).
+    unusable: bool,
 }
 
 /// Run a station: see the module docs. Returns the result (with its verdict) or the error that ended
@@ -245,6 +248,17 @@ pub fn run(
     let finished = session.finish();
     let poses = outcome?;
     finished?;
+    // Photos of which not one could be used: bad input, as for `cubecal detect`.
+    if !poses.is_empty() && poses.iter().all(|p| p.unusable) {
+        let names: Vec<String> = poses.iter().map(|p| p.record.name.clone()).collect();
+        let first = (poses.first())
+            .and_then(|p| p.record.reason.clone())
+            .unwrap_or_default();
+        return Err(StationError::Capture(CaptureError::Image {
+            path: info.name.clone(),
+            reason: crate::capture::images::unusable(&names, &first),
+        }));
+    }
 
     let result = solve_and_judge(spec, &info, poses, sink);
     let mut result = result?;
@@ -330,21 +344,19 @@ fn capture_poses(
         sink.event(&Event::Alive);
         let flushed = if moving { hw.source.flush()? } else { 0 };
         let mut frames = Vec::with_capacity(fpp);
+        let mut grabbed = Grabbed::default();
         for _ in 0..fpp {
-            let f = hw.source.grab(timeout)?;
+            grabbed.grab(hw.source.as_mut(), timeout, angle, session, &mut frames)?;
             sink.event(&Event::Alive);
-            session.add_frame(&f, angle)?;
-            frames.push(f);
         }
-        let name = format!("pose{index:02}");
-        let frame_file = format!("frame_{:06}.png", session.frame_count() - 1);
+        let name = (grabbed.source.take()).unwrap_or_else(|| format!("pose{index:02}"));
         let last = frames.last().map(|f| f.sequence).unwrap_or_default();
         sink.event(&Event::FrameGrabbed {
             index,
             sequence: last,
             flushed,
         });
-        let pose = examine(spec, &mut finder, &frames, name, frame_file, angle)?;
+        let pose = examine(spec, &mut finder, &frames, name, grabbed, angle)?;
         match &pose.view {
             Some((view, _)) => {
                 for p in &view.points {
@@ -383,19 +395,65 @@ fn capture_poses(
     Ok(out)
 }
 
+/// What the grabs of one pose left besides their frames: the session file of the last, the name of
+/// the user's file behind it (photo runs), and why a photo could not be used.
+#[derive(Debug, Default)]
+struct Grabbed {
+    frame_file: Option<String>,
+    source: Option<String>,
+    unusable: Option<String>,
+}
+
+impl Grabbed {
+    /// Grab one frame into `frames` and record it in the session: a user's file as it is, any
+    /// other frame encoded. A photo that cannot be used ([`CaptureError::Image`]) is recorded with
+    /// its reason and leaves the run going; any other grab error ends it.
+    fn grab(
+        &mut self,
+        source: &mut dyn crate::capture::FrameSource,
+        timeout: Duration,
+        angle: Option<f64>,
+        session: &mut SessionWriter,
+        frames: &mut Vec<crate::capture::Frame>,
+    ) -> Result<(), StationError> {
+        let grabbed = source.grab(timeout);
+        let file = source.take_source_file();
+        let recorded = match (file, &grabbed) {
+            (Some(file), Err(CaptureError::Image { .. }) | Ok(_)) => {
+                self.source = Some(file.name.clone());
+                let (sequence, timestamp) = grabbed
+                    .as_ref()
+                    .map_or((session.frame_count() as u64, Duration::ZERO), |f| {
+                        (f.sequence, f.timestamp)
+                    });
+                session.add_source_file(file, sequence, timestamp, angle)?
+            }
+            (None, Ok(f)) => session.add_frame(f, angle)?,
+            (_, Err(_)) => return grabbed.map(|_| ()).map_err(StationError::from),
+        };
+        self.frame_file = (!recorded.is_empty()).then_some(recorded);
+        match grabbed {
+            Ok(f) => frames.push(f),
+            Err(CaptureError::Image { reason, .. }) => self.unusable = Some(reason),
+            Err(e) => return Err(e.into()),
+        }
+        Ok(())
+    }
+}
+
 /// Detect and check one pose's frames.
 fn examine(
     spec: &RunSpec<'_>,
     finder: &mut CornerFinder,
     frames: &[crate::capture::Frame],
     name: String,
-    frame_file: String,
+    grabbed: Grabbed,
     angle: Option<f64>,
 ) -> Result<PoseData, StationError> {
     let qa = &spec.config.qa;
     let mut record = ViewRecord {
         name,
-        frame: Some(frame_file),
+        frame: grabbed.frame_file,
         angle_deg: angle,
         accepted: false,
         reason: None,
@@ -411,7 +469,14 @@ fn examine(
         },
         view: None,
         detection: None,
+        image: None,
+        unusable: false,
     };
+    if let Some(reason) = grabbed.unusable {
+        let mut pose = reject(record, reason);
+        pose.unusable = true;
+        return Ok(pose);
+    }
     let Some(last) = frames.last() else {
         return Ok(reject(record, "no frame".into()));
     };
@@ -522,6 +587,8 @@ fn examine(
         )),
         record,
         detection: Some(det),
+        image: Some(last.image.clone()),
+        unusable: false,
     })
 }
 
@@ -666,10 +733,7 @@ fn solve_and_judge(
         .filter_map(|p| {
             Some(crate::detect::undistorted::Recorded {
                 name: &p.view.as_ref()?.0.name,
-                frame: spec
-                    .run_dir
-                    .join(crate::run::SESSION)
-                    .join(p.record.frame.as_ref()?),
+                frame: p.image.as_ref()?,
                 detection: p.detection.as_ref()?,
             })
         })
