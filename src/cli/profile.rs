@@ -108,16 +108,9 @@ pub fn run(cmd: ProfileCommand, out: Output) -> anyhow::Result<u8> {
 }
 
 fn open(s: &StoreArg) -> anyhow::Result<Box<dyn ProfileStore>> {
-    let store: Result<Box<dyn ProfileStore>, profile::ProfileError> =
-        match StoreLocation::parse(&s.store) {
-            // Reading commands never create a store: a missing directory is named as such.
-            StoreLocation::Dir(dir) => profile::store::Store::open_existing(&dir)
-                .map(|st| Box::new(st) as Box<dyn ProfileStore>),
-            StoreLocation::Postgres(_) => {
-                profile::open_store(&s.store, s.store_password_file.as_deref())
-            }
-        };
-    store.with_context(|| format!("opening the profile store {}", describe(&s.store)))
+    // Reading commands never create a store: a missing directory is named as such.
+    profile::open_existing_store(&s.store, s.store_password_file.as_deref())
+        .with_context(|| format!("opening the profile store {}", describe(&s.store)))
 }
 
 /// The store as it may be shown (a URL without password or options; the URL is refused when it holds

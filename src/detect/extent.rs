@@ -290,9 +290,7 @@ pub(super) fn look_beyond(img: &GrayImage, d: &Dense, side: Side) -> SideBeyond 
     out
 }
 
-/// The grid's extent is proven: on each of its four sides, one lattice step beyond the outermost
-/// line (where a bigger board would have its next line of corners), the corner fit window lies
-/// inside the image and the fit finds no X-corner. Else the reason the grid is dropped.
+/// [`extent`]'s verdict with the reason alone (the unit tests').
 #[cfg(test)]
 pub(super) fn check_extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Result<(), String> {
     extent(img, d, folds).map_err(|f| f.reason)
@@ -301,7 +299,7 @@ pub(super) fn check_extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Resu
 /// Why a grid's extent is not proven.
 #[derive(Debug, Clone, PartialEq)]
 pub(super) struct ExtentFailure {
-    /// The first failing side's reason, as [`check_extent`] gives it.
+    /// The first failing side's reason.
     pub reason: String,
     /// Only the frame border is in the way: no side shows a corner like the grid's one step beyond
     /// it, and every side without its empty positions has positions outside the image or too close
@@ -309,8 +307,11 @@ pub(super) struct ExtentFailure {
     pub only_border: bool,
 }
 
-/// [`check_extent`], telling a grid whose only missing proof is the frame border from one that may
-/// really continue (a corner beyond it, or undecided positions inside the image).
+/// The grid's extent is proven: on each of its four sides, one lattice step beyond the outermost
+/// line (where a bigger board would have its next line of corners), the corner fit window lies
+/// inside the image and the fit finds no X-corner. Else the reason the grid is dropped.
+/// The failure tells a grid whose only missing proof is the frame border from one that may really
+/// continue (a corner beyond it, or undecided positions inside the image).
 pub(super) fn extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Result<(), ExtentFailure> {
     let mut first: Option<String> = None;
     let mut only_border = true;
@@ -358,6 +359,10 @@ pub(super) fn extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Result<(),
                     b.empty,
                     MIN_EMPTY_BEYOND.min(b.n)
                 ));
+            }
+            // A side unproven away from the border settles it: no need to look at the others.
+            if !only_border {
+                break;
             }
         }
     }

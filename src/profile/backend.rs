@@ -162,13 +162,31 @@ pub fn read_password(password_file: Option<&Path>) -> Result<Option<String>, Pro
     Ok(std::env::var("PGPASSWORD").ok().filter(|p| !p.is_empty()))
 }
 
-/// Open the store `value` names (see the module docs), connecting to PostgreSQL when it is a URL.
+/// Open the store `value` names (see the module docs), connecting to PostgreSQL when it is a URL. A
+/// store directory is created when missing (the station's first passing run).
 pub fn open_store(
     value: &Path,
     password_file: Option<&Path>,
 ) -> Result<Box<dyn ProfileStore>, ProfileError> {
+    open(value, password_file, super::store::Store::open)
+}
+
+/// [`open_store`] for commands that only read or manage what is stored: a missing store directory is
+/// [`ProfileError::NoStore`], never created.
+pub fn open_existing_store(
+    value: &Path,
+    password_file: Option<&Path>,
+) -> Result<Box<dyn ProfileStore>, ProfileError> {
+    open(value, password_file, super::store::Store::open_existing)
+}
+
+fn open(
+    value: &Path,
+    password_file: Option<&Path>,
+    open_dir: fn(&Path) -> Result<super::store::Store, ProfileError>,
+) -> Result<Box<dyn ProfileStore>, ProfileError> {
     match StoreLocation::parse(value) {
-        StoreLocation::Dir(dir) => Ok(Box::new(super::store::Store::open(&dir)?)),
+        StoreLocation::Dir(dir) => Ok(Box::new(open_dir(&dir)?)),
         StoreLocation::Postgres(url) => {
             let password = read_password(password_file)?;
             Ok(Box::new(super::postgres::PgStore::connect(&url, password)?))

@@ -41,7 +41,9 @@ pub mod export;
 pub mod postgres;
 pub mod store;
 
-pub use backend::{Committed, ProfileStore, Provenance, RolledBack, StoreLocation, open_store};
+pub use backend::{
+    Committed, ProfileStore, Provenance, RolledBack, StoreLocation, open_existing_store, open_store,
+};
 pub use store::{CommitOptions, CommitOutcome, ListEntry, RollbackOutcome, Store};
 
 /// The document format this cubecal writes and the newest it reads.

@@ -8,7 +8,7 @@
 //!    pixel `(i, j)` covers `u ∈ [j−½, j+½)`, `v ∈ [i−½, i+½)`) is unprojected through the exact inverse
 //!    distortion ([`Camera::unproject`]) to a ray, moved into the rig frame, and intersected with every
 //!    face plane and the optional body box; the nearest hit wins, so faces occlude each other and the
-//!    body. The printed pattern is evaluated analytically ([`Face::region_at`]); surfaces are shaded by
+//!    body. The printed pattern is evaluated analytically ([`crate::rig::Face::region_at`]); surfaces are shaded by
 //!    a fixed light (Lambert) so faces differ in brightness as in a photo. Samples that cannot be
 //!    unprojected (beyond the distortion fold) see the background.
 //!    A pixel's value is the mean over an `N × N` grid of sub-pixel samples (box filter = area

@@ -45,6 +45,7 @@ pub use crate::run::{Check, HeldOut, RunResult, Verdict, ViewRecord};
 pub use config::StationConfig;
 pub use event::{Event, EventSink};
 
+use crate::calib::observations::{RawObservations, RawPoint, RawView};
 use crate::calib::report::CalibrationReport;
 use crate::calib::{Correspondence, View};
 use crate::capture::session::{RigRef, SessionError, SessionHeader, SessionWriter};
@@ -645,28 +646,26 @@ fn solve_and_judge(
     let mut held: Vec<View> = accepted[n_fit..].iter().map(|a| a.0.clone()).collect();
     // observations.json: the accepted views with faces, frames and held-out marks.
     let write_observations = |accepted: &[(View, Vec<String>, Option<String>)]| {
-        let raw = crate::calib::observations::RawObservations {
+        let raw = RawObservations {
             image_size,
             views: accepted
                 .iter()
                 .enumerate()
-                .map(
-                    |(i, (v, faces, frame))| crate::calib::observations::RawView {
-                        name: Some(v.name.clone()),
-                        points: v
-                            .points
-                            .iter()
-                            .zip(faces)
-                            .map(|(c, f)| crate::calib::observations::RawPoint {
-                                xyz: c.xyz.into(),
-                                uv: c.uv.into(),
-                                face: Some(f.clone()),
-                            })
-                            .collect(),
-                        frame: frame.clone(),
-                        held_out: i >= n_fit,
-                    },
-                )
+                .map(|(i, (v, faces, frame))| RawView {
+                    name: Some(v.name.clone()),
+                    points: v
+                        .points
+                        .iter()
+                        .zip(faces)
+                        .map(|(c, f)| RawPoint {
+                            xyz: c.xyz.into(),
+                            uv: c.uv.into(),
+                            face: Some(f.clone()),
+                        })
+                        .collect(),
+                    frame: frame.clone(),
+                    held_out: i >= n_fit,
+                })
                 .collect(),
         };
         write_json(&spec.run_dir.join(crate::run::OBSERVATIONS), &raw)
