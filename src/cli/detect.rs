@@ -121,6 +121,10 @@ struct FaceJson<'a> {
     /// border, or a lone 180°-symmetric board): the view's pose is not trusted, its corners are.
     #[serde(skip_serializing_if = "Option::is_none")]
     ambiguous_pose: Option<&'a str>,
+    /// How the face's identity was decided when its size and colours left a choice: the rig
+    /// geometry's margin over the closest alternative, or the symmetry that leaves it open.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    identity: Option<&'a str>,
 }
 
 #[derive(Serialize)]
@@ -167,6 +171,7 @@ impl<'a> ImageJson<'a> {
                     face: face_name(rig, f.face),
                     corners: f.corners.iter().map(CornerRef).collect(),
                     ambiguous_pose: f.ambiguous_pose.as_deref(),
+                    identity: f.identity.as_deref(),
                 })
                 .collect(),
             rejected: det
@@ -323,8 +328,10 @@ fn print_human(p: &Processed, rig: &Rig) -> anyhow::Result<()> {
         )?;
         if let Some(why) = &f.ambiguous_pose {
             outln!(
-                "    pose not trusted (labels certain up to a shift or turn in the plane): {why}"
+                "    pose not trusted (labels certain up to a motion that moves the pose only): {why}"
             )?;
+        } else if let Some(how) = &f.identity {
+            outln!("    identity {how}")?;
         }
     }
     for r in &det.rejected {

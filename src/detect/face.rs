@@ -27,13 +27,18 @@ pub struct FaceDetection {
     pub corners: Vec<LabelledCorner>,
     /// White-minus-black mean intensity that decided the orientation (grey levels).
     pub colour_contrast: f64,
-    /// Set, with the reason, when the face's labels are certain only up to a shift or turn within
-    /// its plane; only on a rig of one face: a grid of exactly the face's size whose only missing
-    /// proof of extent is the frame border (were it part of a bigger board, its labels would be
-    /// shifted), or a lone 180°-symmetric face whose orientation its colours cannot tell. Either
-    /// changes this view's pose only, never the intrinsics (a planar view constrains the camera
-    /// through its homography up to a similarity of the plane); so the pose is flagged, not trusted.
+    /// Set, with the reason, when the face's labels are certain only up to a motion that changes
+    /// this view's pose and never the intrinsics: on a rig of one face, a grid of exactly the face's
+    /// size whose only missing proof of extent is the frame border (were it part of a bigger board,
+    /// its labels would be shifted within the plane); on any rig, labellings one similarity apart
+    /// that nothing in the frame tells apart (a lone 180°-symmetric board, a lone grid of a shape
+    /// several faces share, a rig with a symmetry of its own; see `identity`). A planar view
+    /// constrains the camera through its homography up to a similarity of the plane, and a
+    /// similarity of the whole rig is taken up by the pose; so the pose is flagged, not trusted.
     pub ambiguous_pose: Option<String>,
+    /// How the face's identity was decided when its size and colours left a choice (the rig
+    /// geometry's margin over the closest alternative, or the symmetry that leaves it open).
+    pub identity: Option<String>,
 }
 
 /// Why a grid (or the frame) was not used.

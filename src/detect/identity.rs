@@ -18,12 +18,27 @@
 //!
 //! When the geometry cannot decide (one grid, or coplanar grids, or no clear winner), a grid is
 //! labelled only if its size and colours leave exactly one candidate; the others are rejected with
-//! the reason — except a lone 180°-symmetric face on a rig of one face: its candidates differ by a
-//! turn within its plane, which moves the view's pose and never the intrinsics, so it is labelled
-//! with (0, 0) nearest the image's top-left and its pose flagged ([`FaceDetection::ambiguous_pose`]).
+//! the reason — except where the candidates cannot differ in what they teach the camera:
+//!
+//! **Labellings one similarity apart.** Two labellings of the same image corners whose 3D points
+//! are related by a proper similarity (rotation, translation, uniform scale: [`similar`]) project
+//! identically for every camera, the pose taking up the motion; no camera, however well known, can
+//! tell them apart, and either gives the same intrinsics. That is the case of a lone 180°-symmetric
+//! board (its two turns), of a lone grid that fits several faces of equal size (a planar view
+//! constrains the camera through its homography up to a similarity of its plane, even the square
+//! size drops out), and of a rig that has a symmetry of its own — the two equal, 180°-symmetric
+//! walls of an inside corner without its floor, exchanged by a half turn about their diagonal. Such
+//! a grid (or the frame's joint assignment) is labelled with one of the alternatives, chosen by a
+//! fixed rule, and its pose is flagged ([`FaceDetection::ambiguous_pose`]); any alternative that is
+//! not one similarity apart (a shifted lattice, a face reversed against the others, faces of
+//! different shapes) still rejects the grid. A flagged face of a rig of several faces is no anchor
+//! for placing the frame's partial grids (`place`): their placement would inherit the ambiguity
+//! without the symmetry that makes it harmless.
 
 use image::GrayImage;
-use nalgebra::{Matrix3x4, Vector2, Vector3};
+use std::collections::HashMap;
+
+use nalgebra::{Matrix3, Matrix3x4, Vector2, Vector3};
 
 use super::dense::Dense;
 use super::face::{FaceDetection, LabelledCorner, MIN_COLOUR_CONTRAST, Rejection};
@@ -38,6 +53,54 @@ pub const GEOMETRY_MARGIN: f64 = 3.0;
 pub const MAX_GEOMETRY_RMS_STEPS: f64 = 0.25;
 /// Most joint assignments tried when the geometry decides (beyond: not told apart).
 pub const MAX_ASSIGNMENTS: usize = 4096;
+/// Two point sets are one similarity apart when the best similarity maps one onto the other to
+/// this fraction of the sets' RMS spread (rig coordinates are exact, so true symmetries reach
+/// rounding error, ~1e-15; a shift by one square of a 10-square face is ~0.1).
+pub const SIMILARITY_TOLERANCE: f64 = 1e-6;
+
+/// Whether `b` is `a` moved by a proper similarity `b ≈ s·R·a + t` (R a rotation, s > 0), point for
+/// point (Umeyama's closed form; `false` for mismatched or degenerate sets).
+pub fn similar(a: &[Vector3<f64>], b: &[Vector3<f64>]) -> bool {
+    let n = a.len();
+    if n != b.len() || n < 3 {
+        return false;
+    }
+    let nf = n as f64;
+    let ma = a.iter().sum::<Vector3<f64>>() / nf;
+    let mb = b.iter().sum::<Vector3<f64>>() / nf;
+    let var_a = a.iter().map(|p| (p - ma).norm_squared()).sum::<f64>() / nf;
+    let var_b = b.iter().map(|p| (p - mb).norm_squared()).sum::<f64>() / nf;
+    if !(var_a > 0.0 && var_b > 0.0) {
+        return false;
+    }
+    let cov = a
+        .iter()
+        .zip(b)
+        .map(|(p, q)| (q - mb) * (p - ma).transpose())
+        .sum::<Matrix3<f64>>()
+        / nf;
+    let svd = cov.svd(true, true);
+    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+        return false;
+    };
+    let mut sign = Matrix3::identity();
+    if (u * v_t).determinant() < 0.0 {
+        sign[(2, 2)] = -1.0;
+    }
+    let r = u * sign * v_t;
+    let scale = (Matrix3::from_diagonal(&svd.singular_values) * sign).trace() / var_a;
+    if scale <= 0.0 {
+        return false;
+    }
+    let t = mb - scale * r * ma;
+    let ss = a
+        .iter()
+        .zip(b)
+        .map(|(p, q)| (q - (scale * r * p + t)).norm_squared())
+        .sum::<f64>()
+        / nf;
+    ss.sqrt() <= SIMILARITY_TOLERANCE * var_b.sqrt()
+}
 
 /// A grid with local indices mapped to a face: `cell(row, col)` of the face is the grid's
 /// `index(row, col)`.
@@ -302,6 +365,7 @@ fn detection(rig: &Rig, w: &Whole, m: Mapping, contrast: f64) -> (FaceDetection,
             corners,
             colour_contrast: contrast,
             ambiguous_pose: w.ambiguous_pose.clone(),
+            identity: None,
         },
         d,
         m,
@@ -321,6 +385,46 @@ fn pairs(rig: &Rig, wholes: &[&Whole], pick: &[Mapping]) -> Vec<(Vector3<f64>, V
         }
     }
     pts
+}
+
+/// The 3D point each grid corner gets under a joint assignment, in the grids' own corner order (so
+/// that two assignments' points correspond corner for corner); `None` if a turned grid's corner
+/// cannot be matched back.
+fn xyz_in_grid_order(rig: &Rig, wholes: &[&Whole], pick: &[Mapping]) -> Option<Vec<Vector3<f64>>> {
+    let key = |uv: Vector2<f64>| (uv.x.to_bits(), uv.y.to_bits());
+    let mut out = Vec::new();
+    for (w, m) in wholes.iter().zip(pick) {
+        let face = &rig.faces[m.face];
+        let d = w.dense.turned(m.turns);
+        let mut by_uv = HashMap::with_capacity(d.rows * d.cols);
+        for r in 0..d.rows {
+            for c in 0..d.cols {
+                by_uv.insert(key(d.at(r, c)), face.corner_xyz(r, c));
+            }
+        }
+        for uv in &w.dense.uv {
+            out.push(*by_uv.get(&key(*uv))?);
+        }
+    }
+    Some(out)
+}
+
+/// Whether every rival assignment labels the grids one similarity away from `chosen`.
+fn all_similar(rig: &Rig, wholes: &[&Whole], chosen: &[Mapping], rivals: &[Vec<Mapping>]) -> bool {
+    let Some(base) = xyz_in_grid_order(rig, wholes, chosen) else {
+        return false;
+    };
+    rivals
+        .iter()
+        .all(|alt| xyz_in_grid_order(rig, wholes, alt).is_some_and(|pts| similar(&base, &pts)))
+}
+
+/// How a joint assignment was decided, printed with the face.
+struct Decision {
+    /// The margin, or the alternatives it could not refute.
+    text: String,
+    /// The alternatives fit alike but are one similarity apart: pose flagged.
+    up_to_similarity: bool,
 }
 
 /// Median distance between neighbouring corners of the grids.
@@ -343,8 +447,9 @@ fn median_step(wholes: &[&Whole]) -> f64 {
 }
 
 /// The joint assignment of every grid to a distinct face that fits one camera clearly best, or why
-/// the geometry does not decide.
-fn by_geometry(rig: &Rig, wholes: &[&Whole]) -> Result<Vec<(Mapping, f64)>, String> {
+/// the geometry does not decide. Alternatives that fit alike but label the grids one similarity
+/// apart (module docs) do not block the decision; they flag it.
+fn by_geometry(rig: &Rig, wholes: &[&Whole]) -> Result<(Vec<(Mapping, f64)>, Decision), String> {
     let total: usize = wholes
         .iter()
         .map(|w| w.candidates.len())
@@ -379,29 +484,52 @@ fn by_geometry(rig: &Rig, wholes: &[&Whole]) -> Result<Vec<(Mapping, f64)>, Stri
     let Some((best, chosen)) = scored.first().cloned() else {
         return Err("no assignment of distinct faces gives a projection (the grids are coplanar, or claim the same face)".into());
     };
-    if let Some((second, _)) = scored.get(1)
-        && *second < GEOMETRY_MARGIN * best
-    {
-        return Err(format!(
-            "two assignments fit one camera alike (DLT RMS {best:.2} px and {second:.2} px)"
-        ));
+    let to_maps = |pick: &[usize]| -> Vec<Mapping> {
+        pick.iter()
+            .zip(wholes)
+            .map(|(&k, w)| w.candidates[k].0)
+            .collect()
+    };
+    let maps = to_maps(&chosen);
+    // Rivals: other assignments that fit alike, and the chosen one with any one face reversed
+    // (whatever its colours say), with the RMS of the closest.
+    let mut rivals: Vec<Vec<Mapping>> = Vec::new();
+    let mut closest: Option<(f64, String)> = None;
+    let note = |rms: f64, what: String, closest: &mut Option<(f64, String)>| {
+        if closest.as_ref().is_none_or(|c| rms < c.0) {
+            *closest = Some((rms, what));
+        }
+    };
+    for (rms, pick) in scored.iter().skip(1) {
+        note(*rms, "the next assignment".into(), &mut closest);
+        if *rms < GEOMETRY_MARGIN * best {
+            rivals.push(to_maps(pick));
+        }
     }
-    let maps: Vec<Mapping> = chosen
-        .iter()
-        .zip(wholes)
-        .map(|(&k, w)| w.candidates[k].0)
-        .collect();
-    // Any one face reversed, whatever its colours say.
+    let mut reversed_rival: Option<(f64, String)> = None;
     for i in 0..maps.len() {
         let mut alt = maps.clone();
         alt[i].turns = (alt[i].turns + 2) % 4;
-        if let Some(rms) = dlt_rms(&pairs(rig, wholes, &alt))
-            && rms < GEOMETRY_MARGIN * best
+        if let Some(rms) = dlt_rms(&pairs(rig, wholes, &alt)) {
+            let what = format!("face '{}' reversed", rig.faces[alt[i].face].name);
+            note(rms, what.clone(), &mut closest);
+            if rms < GEOMETRY_MARGIN * best {
+                reversed_rival.get_or_insert((rms, what));
+                rivals.push(alt);
+            }
+        }
+    }
+    let symmetric = !rivals.is_empty() && all_similar(rig, wholes, &maps, &rivals);
+    if !rivals.is_empty() && !symmetric {
+        if let Some((second, _)) = scored.get(1)
+            && *second < GEOMETRY_MARGIN * best
         {
             return Err(format!(
-                "DLT RMS {best:.2} px vs {rms:.2} px with face '{}' reversed",
-                rig.faces[alt[i].face].name
+                "two assignments fit one camera alike (DLT RMS {best:.2} px and {second:.2} px)"
             ));
+        }
+        if let Some((rms, what)) = reversed_rival {
+            return Err(format!("DLT RMS {best:.2} px vs {rms:.2} px with {what}"));
         }
     }
     let step = median_step(wholes);
@@ -410,11 +538,44 @@ fn by_geometry(rig: &Rig, wholes: &[&Whole]) -> Result<Vec<(Mapping, f64)>, Stri
             "the best assignment fits one camera with DLT RMS {best:.2} px, more than {MAX_GEOMETRY_RMS_STEPS} of the grids' step {step:.1} px"
         ));
     }
-    Ok(chosen
-        .iter()
-        .zip(wholes)
-        .map(|(&k, w)| w.candidates[k])
-        .collect())
+    let decision = if symmetric {
+        Decision {
+            text: format!(
+                "labelled up to a symmetry of the rig: {} other labelling(s) fit one camera alike (DLT RMS {best:.2} px) and are one similarity apart, so they differ in this view's pose only, never in the intrinsics",
+                rivals.len()
+            ),
+            up_to_similarity: true,
+        }
+    } else {
+        Decision {
+            text: match closest {
+                Some((rms, what)) => format!(
+                    "decided by the rig geometry: DLT RMS {best:.2} px against {rms:.2} px for {what} ({:.1}× apart, {GEOMETRY_MARGIN}× needed)",
+                    rms / best.max(f64::MIN_POSITIVE)
+                ),
+                None => format!(
+                    "decided by the rig geometry: the only assignment that fits one camera (DLT RMS {best:.2} px)"
+                ),
+            },
+            up_to_similarity: false,
+        }
+    };
+    Ok((
+        chosen
+            .iter()
+            .zip(wholes)
+            .map(|(&k, w)| w.candidates[k])
+            .collect(),
+        decision,
+    ))
+}
+
+/// Flag a face's pose as not trusted, keeping an earlier reason.
+fn flag(f: &mut FaceDetection, why: String) {
+    f.ambiguous_pose = Some(match f.ambiguous_pose.take() {
+        Some(other) => format!("{why}; {other}"),
+        None => why,
+    });
 }
 
 /// Decide which face each whole grid is (see the module docs).
@@ -429,9 +590,14 @@ pub(super) fn identify(rig: &Rig, wholes: Vec<Whole>) -> (Vec<FaceDetection>, Ve
         None
     };
     match geometric {
-        Some(Ok(chosen)) => {
+        Some(Ok((chosen, decision))) => {
             for (w, (m, contrast)) in wholes.iter().zip(chosen) {
-                found.push(detection(rig, w, m, contrast));
+                let mut f = detection(rig, w, m, contrast);
+                f.0.identity = Some(decision.text.clone());
+                if decision.up_to_similarity {
+                    flag(&mut f.0, decision.text.clone());
+                }
+                found.push(f);
             }
             return (found.into_iter().map(|f| f.0).collect(), rejected);
         }
@@ -455,11 +621,18 @@ pub(super) fn identify(rig: &Rig, wholes: Vec<Whole>) -> (Vec<FaceDetection>, Ve
                     .candidates
                     .iter()
                     .all(|c| c.0.face == w.candidates[0].0.face);
-                if one_face && rig.faces.len() == 1 {
-                    // A lone board whose orientation its colours cannot tell: every candidate is
-                    // the same lattice turned within the board's plane (handedness is fixed, so
-                    // never mirrored), which moves this view's pose and never the intrinsics. The
-                    // turn that puts (0, 0) nearest the image's top-left is taken, pose flagged.
+                // A lone grid whose candidates are one similarity apart (module docs): a board
+                // whose orientation its colours cannot tell, or a grid that fits several faces of
+                // equal shape. Every candidate is the same lattice moved (handedness is fixed, so
+                // never mirrored), which moves this view's pose and never the intrinsics. The
+                // candidate that puts (0, 0) nearest the image's top-left is taken, pose flagged.
+                let alike = wholes.len() == 1 && {
+                    let first = [w.candidates[0].0];
+                    let rivals: Vec<Vec<Mapping>> =
+                        w.candidates[1..].iter().map(|c| vec![c.0]).collect();
+                    all_similar(rig, &[w], &first, &rivals)
+                };
+                if alike {
                     let Some(&(m, contrast)) = w.candidates.iter().min_by(|a, b| {
                         let at = |m: Mapping| {
                             let d = w.dense.turned(m.turns);
@@ -471,13 +644,21 @@ pub(super) fn identify(rig: &Rig, wholes: Vec<Whole>) -> (Vec<FaceDetection>, Ve
                         continue;
                     };
                     let mut f = detection(rig, w, m, contrast);
-                    let why = format!(
-                        "face '{faces}' is 180°-symmetric and alone: its orientation is not decided, the turn putting (0, 0) nearest the image's top-left is taken"
-                    );
-                    f.0.ambiguous_pose = Some(match f.0.ambiguous_pose.take() {
-                        Some(other) => format!("{why}; {other}"),
-                        None => why,
-                    });
+                    let why = if one_face && rig.faces.len() == 1 {
+                        format!(
+                            "face '{faces}' is 180°-symmetric and alone: its orientation is not decided, the turn putting (0, 0) nearest the image's top-left is taken"
+                        )
+                    } else {
+                        format!(
+                            "{}×{} grid is alone in the frame and fits {} labellings (faces '{faces}') one similarity apart: labelled as '{}' with (0, 0) nearest the image's top-left; the others differ in this view's pose only, never in the intrinsics",
+                            w.dense.rows,
+                            w.dense.cols,
+                            w.candidates.len(),
+                            rig.faces[m.face].name
+                        )
+                    };
+                    f.0.identity = Some(why.clone());
+                    flag(&mut f.0, why);
                     found.push(f);
                     continue;
                 }
@@ -525,4 +706,52 @@ pub(super) fn identify(rig: &Rig, wholes: Vec<Whole>) -> (Vec<FaceDetection>, Ve
         return (Vec::new(), rejected);
     }
     (found.into_iter().map(|f| f.0).collect(), rejected)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Rotation3;
+
+    fn lattice(rows: usize, cols: usize, step: f64) -> Vec<Vector3<f64>> {
+        (0..rows)
+            .flat_map(|r| {
+                (0..cols).map(move |c| Vector3::new(c as f64 * step, r as f64 * step, 0.0))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn similar_accepts_a_moved_scaled_copy_and_refuses_shifts_and_mirrors() {
+        let a = lattice(6, 8, 28.0);
+        let rot = Rotation3::from_euler_angles(0.3, -1.1, 2.0);
+        let t = Vector3::new(10.0, -4.0, 300.0);
+        let moved: Vec<_> = a.iter().map(|p| 1.7 * (rot * p) + t).collect();
+        assert!(similar(&a, &moved));
+        // Turned by 180° within the plane (the two labellings of a symmetric board): similar.
+        let turned: Vec<_> = a.iter().rev().copied().collect();
+        assert!(similar(&a, &turned));
+        // The same corners labelled one column further along: not a similarity.
+        let shifted: Vec<_> = a
+            .iter()
+            .map(|p| {
+                let c = (p.x / 28.0).round();
+                Vector3::new(((c + 1.0) % 8.0) * 28.0, p.y, 0.0)
+            })
+            .collect();
+        assert!(!similar(&a, &shifted));
+        // A mirror of a 3D set is not a proper motion.
+        let mut solid = a.clone();
+        solid.extend(
+            lattice(6, 8, 28.0)
+                .iter()
+                .map(|p| Vector3::new(0.0, p.y, p.x + 28.0)),
+        );
+        let mirrored: Vec<_> = solid.iter().map(|p| Vector3::new(-p.x, p.y, p.z)).collect();
+        assert!(similar(&solid, &solid));
+        assert!(!similar(&solid, &mirrored));
+        // Mismatched or degenerate sets.
+        assert!(!similar(&a, &a[1..]));
+        assert!(!similar(&[Vector3::zeros(); 4], &[Vector3::zeros(); 4]));
+    }
 }

@@ -14,7 +14,10 @@
 //! 4. **Identity** (`identity`): the face and its orientation, by square colours and,
 //!    when they leave a choice (faces of equal size, 180°-symmetric faces), by the rig geometry of
 //!    all grids of the frame; with two or more faces the labelling must fit one camera clearly
-//!    better than with any face reversed, or the frame's labelling is dropped.
+//!    better than with any face reversed, or the frame's labelling is dropped — unless the
+//!    alternatives are one similarity apart (a symmetry of the rig, a lone grid of a shape several
+//!    faces share, a lone 180°-symmetric board): those differ in the view's pose only, never in the
+//!    intrinsics, so the grid is labelled and its pose flagged ([`FaceDetection::ambiguous_pose`]).
 //!
 //! Grids that fail the size or extent steps (partially visible faces, incomplete grids) are not
 //! labelled by their own evidence: [`super::place`] tries to place them through the rig geometry of
@@ -108,6 +111,18 @@ pub fn label(
     }
     let (faces, mut not_identified) = identity::identify(rig, whole);
     rejected.append(&mut not_identified);
+    // On a rig of several faces, a face labelled only up to a symmetry is no anchor: a partial grid
+    // placed against it would inherit the ambiguity without the symmetry that makes it harmless.
+    if rig.faces.len() > 1 && faces.iter().any(|f| f.ambiguous_pose.is_some()) {
+        rejected.extend(partials.into_iter().map(|p| Rejection {
+            reason: format!(
+                "{}; not placed on the rig: the frame's complete grids are labelled only up to a symmetry of the rig",
+                p.reason
+            ),
+            corners: p.grid_corners(),
+        }));
+        return (faces, rejected);
+    }
     let (placed, mut contradicted, not_placed) = place(img, rig, &faces, partials);
     let mut faces = faces;
     faces.extend(placed);

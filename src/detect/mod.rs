@@ -112,13 +112,18 @@ impl FrameDetection {
     }
 
     /// The labelled corners with their rig labels, for refining the rig itself
-    /// ([`crate::calib::rigrefine`]).
+    /// ([`crate::calib::rigrefine`]). Faces labelled only up to a symmetry
+    /// ([`label::FaceDetection::ambiguous_pose`]) are left out when the frame holds several: a
+    /// symmetry of the nominal rig is not one of the real rig, whose geometry is what is refined (a
+    /// lone face constrains no relative geometry and stays).
     pub fn to_rig_view(&self, name: &str) -> RigView {
+        let several = self.faces.len() > 1;
         RigView {
             name: name.to_string(),
             points: self
                 .faces
                 .iter()
+                .filter(|f| !(several && f.ambiguous_pose.is_some()))
                 .flat_map(|f| {
                     f.corners.iter().map(move |c| RigPoint {
                         corner: CornerId {

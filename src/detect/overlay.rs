@@ -464,6 +464,7 @@ mod tests {
             corners,
             colour_contrast: 100.0,
             ambiguous_pose: None,
+            identity: None,
         }
     }
 

@@ -183,6 +183,7 @@ mod tests {
                 .collect(),
             colour_contrast: 100.0,
             ambiguous_pose: None,
+            identity: None,
         }
     }
 

@@ -395,6 +395,7 @@ fn place_one(
         corners,
         colour_contrast: contrast,
         ambiguous_pose: None,
+        identity: None,
     })
 }
 
@@ -835,6 +836,7 @@ pub(super) fn place_by_edges(
             corners: placed_corners(rig, p, &c[k].0),
             colour_contrast: c[k].1,
             ambiguous_pose: None,
+            identity: None,
         })
         .collect();
     // Extent: each face's corners that its grid lacks lie outside the frame (or hug its border).

@@ -60,6 +60,7 @@ pub fn detection_from_view(view: &RawView, rig: &Rig, width: u32, height: u32) -
                 corners: vec![corner],
                 colour_contrast: 0.0,
                 ambiguous_pose: None,
+                identity: None,
             }),
         }
     }
@@ -99,6 +100,7 @@ fn scaled(det: &FrameDetection, s: f64, width: u32, height: u32) -> FrameDetecti
                     .collect(),
                 colour_contrast: f.colour_contrast,
                 ambiguous_pose: None,
+                identity: None,
             })
             .collect(),
         rejected: det.rejected.clone(),

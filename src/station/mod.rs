@@ -575,7 +575,7 @@ fn examine(
         .find_map(|f| f.ambiguous_pose.as_ref())
         .map(|why| {
             format!(
-                "pose not trusted, intrinsics used: {why} (on a one-face rig a shift or turn of the labels within the plane moves only this view's pose)"
+                "pose not trusted, intrinsics used: {why} (labels certain up to a motion that moves only this view's pose, never the intrinsics)"
             )
         });
     Ok(PoseData {

@@ -250,6 +250,7 @@ mod tests {
                 corners,
                 colour_contrast: 190.0,
                 ambiguous_pose: None,
+                identity: None,
             }],
         )
     }
