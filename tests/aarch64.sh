@@ -14,9 +14,10 @@
 # ./target/aarch64) so it never invalidates the host build. Unoptimised code is far too slow under
 # qemu's instruction translation, hence `--release` for the unit tests too.
 #
-# The benches run their full repetitions (`--bench`); under qemu-user the figures measure the
-# emulator on this machine as much as the code: compare them with each other (noise / cube), not
-# with a real board. Times of each step are printed (`[aarch64 +Ns]`).
+# The benches run 9 repetitions per figure (CUBECAL_BENCH_REPS; a cube frame takes ~0.5 s emulated,
+# 25-50x native); under qemu-user the figures measure the emulator on this machine as much as the
+# code: compare them with each other (noise / cube), not with a real board. Times of each step are
+# printed (`[aarch64 +Ns]`).
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"
@@ -51,6 +52,6 @@ log "build (release, $TRIPLE) into $CARGO_TARGET_DIR"
 cargo test --locked --release --target "$TRIPLE" --lib --benches --no-run
 log "unit tests under qemu-aarch64"
 cargo test --locked --release --target "$TRIPLE" --lib
-log "detect and solve benches under qemu-aarch64"
-cargo bench --locked --target "$TRIPLE" --bench detect --bench solve
+log "detect and solve benches under qemu-aarch64 (CUBECAL_BENCH_REPS=${CUBECAL_BENCH_REPS:=9} repetitions)"
+CUBECAL_BENCH_REPS=$CUBECAL_BENCH_REPS cargo bench --locked --target "$TRIPLE" --bench detect --bench solve
 log "done"
