@@ -102,10 +102,20 @@ fn stage_split(finder: &mut CornerFinder, img: &GrayImage, rig: &Rig, reps: usiz
     )
 }
 
+/// `CUBECAL_BENCH_REPS`, when set to a count of at least 1.
+fn reps_from_env() -> Option<usize> {
+    std::env::var("CUBECAL_BENCH_REPS")
+        .ok()?
+        .parse()
+        .ok()
+        .filter(|&n| n >= 1)
+}
+
 fn main() {
     // `cargo test --benches` runs this with `--bench` absent: keep that quick.
     let quick = !std::env::args().any(|a| a == "--bench");
-    let reps = if quick { 2 } else { 51 };
+    // CUBECAL_BENCH_REPS shortens a run where each frame is slow (under qemu: tests/aarch64.sh).
+    let reps = reps_from_env().unwrap_or(if quick { 2 } else { 51 });
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/fixtures/rigs/cube_outside.toml"

@@ -146,8 +146,13 @@ fn bench_rig_refinement(reps: usize) {
 fn main() {
     // `cargo test --benches` runs this with `--bench` absent: keep that quick.
     let quick = !std::env::args().any(|a| a == "--bench");
-    let reps = if quick { 3 } else { 101 };
+    // CUBECAL_BENCH_REPS shortens a run where each solve is slow (under qemu: tests/aarch64.sh).
+    let env_reps = std::env::var("CUBECAL_BENCH_REPS")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+        .filter(|&n| n >= 1);
+    let reps = env_reps.unwrap_or(if quick { 3 } else { 101 });
     bench("solve", 10, reps);
-    bench("solve", 50, if quick { 1 } else { 21 });
+    bench("solve", 50, env_reps.unwrap_or(if quick { 1 } else { 21 }));
     bench_rig_refinement(reps);
 }

@@ -315,6 +315,33 @@ impl Camera {
         )
     }
 
+    /// Distort, returning also `∂(x'', y'')/∂(x, y)`: the same numbers as the first two of
+    /// [`Camera::distort_with_jacobians`] without the coefficients' Jacobian (undistortion's Newton
+    /// steps need only this, and the lens refit takes several per window pixel).
+    pub fn distort_with_point_jacobian(&self, x: f64, y: f64) -> (Vector2<f64>, Matrix2<f64>) {
+        let p = &self.params;
+        let (k1, k2, p1, p2, k3) = (p[idx::K1], p[idx::K2], p[idx::P1], p[idx::P2], p[idx::K3]);
+        let (k4, k5, k6) = (p[idx::K4], p[idx::K5], p[idx::K6]);
+        let r2 = x * x + y * y;
+        let r4 = r2 * r2;
+        let r6 = r4 * r2;
+        let a = 1.0 + k1 * r2 + k2 * r4 + k3 * r6;
+        let b = 1.0 + k4 * r2 + k5 * r4 + k6 * r6;
+        let radial = a / b;
+        let da = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4;
+        let db = k4 + 2.0 * k5 * r2 + 3.0 * k6 * r4;
+        let d_radial = (da * b - a * db) / (b * b); // ∂radial/∂r²
+        let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+        let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+        let j_xy = Matrix2::new(
+            radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x,
+            2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y,
+            2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y,
+            radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x,
+        );
+        (Vector2::new(xd, yd), j_xy)
+    }
+
     /// Distort, returning also `∂(x'', y'')/∂(x, y)` and `∂(x'', y'')/∂(k1, k2, p1, p2, k3, k4, k5, k6)`.
     pub fn distort_with_jacobians(
         &self,
@@ -467,7 +494,7 @@ impl Camera {
         };
         let mut residual = f64::INFINITY;
         for it in 0..UNDISTORT_MAX_ITERATIONS {
-            let (d, j, _) = self.distort_with_jacobians(p.x, p.y);
+            let (d, j) = self.distort_with_point_jacobian(p.x, p.y);
             let r = d - target;
             residual = r.norm();
             if residual <= UNDISTORT_TOLERANCE * (1.0 + target.norm()) {
@@ -559,6 +586,8 @@ mod tests {
         let cam = test_camera();
         for (x, y) in [(0.1, -0.2), (0.5, 0.4), (-0.7, 0.05)] {
             assert!((cam.distort(x, y) - cam.distort_with_jacobians(x, y).0).norm() < 1e-15);
+            let (d, j, _) = cam.distort_with_jacobians(x, y);
+            assert_eq!(cam.distort_with_point_jacobian(x, y), (d, j));
         }
     }
 

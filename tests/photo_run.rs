@@ -37,6 +37,7 @@ fn name(p: &Path) -> String {
 
 fn calibrate(args: &[&std::ffi::OsStr]) -> Output {
     cubecal()
+        .env("RUST_LOG", "cubecal::report=debug")
         .args(["calibrate", "--json", "--rig", BOARD])
         .args(args)
         .output()
@@ -141,6 +142,31 @@ fn a_photo_run_records_the_photos_as_they_are_and_keeps_their_names() {
     for n in &names {
         assert!(html.contains(n.as_str()), "report.html lacks {n}");
     }
+    // Its thumbnails were drawn on the frames the station held (no photo decoded again), and they
+    // are the thumbnails a report drawn later from the run directory decodes: the same HTML, byte
+    // for byte (the plots' folder has the same name beside both).
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("from_previews=13") && stderr.contains("decoded=0"),
+        "{stderr}"
+    );
+    let later = run.join("later/report.html");
+    let again = cubecal()
+        .arg("report")
+        .arg(&run)
+        .arg("--out")
+        .arg(&later)
+        .output()
+        .unwrap();
+    assert!(
+        again.status.success(),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+    assert!(
+        std::fs::read(&later).unwrap() == html.as_bytes(),
+        "the report drawn from the session differs from the run's"
+    );
     // The session holds the user's files byte for byte (no re-encoded PNG), named in the manifest.
     let manifest = read_json(&run.join("session/manifest.json"));
     let frames = manifest["frames"].as_array().unwrap();

@@ -610,21 +610,208 @@ fn the_station_commits_a_passing_run_with_its_provenance_and_a_failing_one_not_a
     assert_eq!(bad.status.code(), Some(6), "{}", text(&bad.stderr));
     assert_eq!(store.history(&camera.folder).map(|h| h.len()).ok(), Some(1));
 
-    // the database unreachable: the run says so (exit 7) and names the store, not a password
+    // the database unreachable at the start: the run passes, its profile waits in the spool, and
+    // the run says where (the store named, not a password)
     let closed = std::net::TcpListener::bind("127.0.0.1:0")
         .and_then(|l| l.local_addr())
         .map(|a| a.port())
         .unwrap_or_else(|e| panic!("{e}"));
     let nowhere = format!("postgres://{}@127.0.0.1:{closed}/t_station", pg::ADMIN);
-    let down = calibrate_into(&nowhere, dir.path(), "c", &[]);
-    assert_eq!(down.status.code(), Some(7), "{}", text(&down.stderr));
-    assert!(
-        text(&down.stderr).contains(&nowhere),
-        "{}",
-        text(&down.stderr)
-    );
+    let spool = dir.path().join("spool");
+    let spool_arg = format!("output.spool={}", spool.display());
+    let down = calibrate_into(&nowhere, dir.path(), "c", &["--set", &spool_arg]);
+    assert_eq!(down.status.code(), Some(0), "{}", text(&down.stderr));
+    let last = result_line(&down);
+    assert_eq!(last["profile_waits_for"], nowhere.as_str());
+    let waiting = spool.join(format!("{}.json", run_id(&dir.path().join("c"))));
+    assert_eq!(last["profile"], waiting.to_string_lossy().as_ref());
+    assert!(waiting.is_file(), "{}", waiting.display());
     assert!(
         dir.path().join("c/profile.json").is_file(),
         "the run keeps its profile.json"
     );
+    let human = Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args(["calibrate", "--replay", "fixtures/sessions/demo", "--out"])
+        .arg(dir.path().join("d"))
+        .args(["--store", &nowhere, "--set", &spool_arg])
+        .env("PGPASSWORD", pg::PASSWORD)
+        .output()
+        .unwrap_or_else(|e| panic!("running cubecal: {e}"));
+    assert_eq!(human.status.code(), Some(0), "{}", text(&human.stderr));
+    let out = text(&human.stdout);
+    assert!(
+        out.contains("waiting in the spool") && out.contains(&spool.display().to_string()),
+        "{out}"
+    );
+    assert!(!out.contains(pg::PASSWORD) && !text(&human.stderr).contains(pg::PASSWORD));
+}
+
+/// The last line of a `--json` run: its result.
+fn result_line(out: &std::process::Output) -> serde_json::Value {
+    text(&out.stdout)
+        .lines()
+        .last()
+        .and_then(|l| serde_json::from_str(l).ok())
+        .unwrap_or_else(|| panic!("no result line in {}", text(&out.stdout)))
+}
+
+/// The run id of the run in `run_dir`: the SHA-256 of its profile.json.
+fn run_id(run_dir: &std::path::Path) -> String {
+    let bytes = std::fs::read(run_dir.join("profile.json")).unwrap_or_else(|e| panic!("{e}"));
+    cubecal::profile::store::sha256_hex(&bytes)
+}
+
+/// Issue 34 line 3: the database killed (SIGKILL, every server process) while a station runs, and
+/// unreachable when the next one starts; both runs pass with their profiles in the spool. Restarted,
+/// the next run drains the spool before its own commit, and a spool entry whose commit already landed
+/// (a drain cut short between the store's commit and the file's removal) is recognised by its run id:
+/// every run is in the history exactly once, none is lost, the spool ends empty.
+#[test]
+fn the_database_killed_mid_run_spools_and_the_spool_drains_exactly_once() {
+    let Some(cluster) = pg::Cluster::own() else {
+        return;
+    };
+    let url = cluster.database("t_spool");
+    let pw = cluster.password_file.to_string_lossy().into_owned();
+    migrate(&url, &pw, "applied migrations [1]");
+    let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let spool = dir.path().join("spool");
+    let spool_arg = format!("output.spool={}", spool.display());
+    let spooled = |out: &std::process::Output, run: &str| {
+        assert_eq!(out.status.code(), Some(0), "{}", text(&out.stderr));
+        let last = result_line(out);
+        assert_eq!(last["profile_waits_for"], url.as_str(), "{last}");
+        let entry = spool.join(format!("{}.json", run_id(&dir.path().join(run))));
+        assert_eq!(last["profile"], entry.to_string_lossy().as_ref());
+        assert!(entry.is_file());
+        entry
+    };
+
+    // a: the database up, committed
+    let a = calibrate_into(&url, dir.path(), "a", &["--set", &spool_arg]);
+    assert_eq!(a.status.code(), Some(0), "{}", text(&a.stderr));
+    assert!(result_line(&a)["profile_waits_for"].is_null());
+
+    // b: the database killed while the station runs (after its first view is accepted)
+    let mut b = Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args([
+            "calibrate",
+            "--json",
+            "--replay",
+            "fixtures/sessions/demo",
+            "--out",
+        ])
+        .arg(dir.path().join("b"))
+        .args(["--store", &url, "--set", &spool_arg])
+        .env("PGPASSWORD", pg::PASSWORD)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("running cubecal: {e}"));
+    let mut stdout = std::io::BufReader::new(b.stdout.take().unwrap_or_else(|| panic!("stdout")));
+    let mut lines = Vec::new();
+    loop {
+        let mut line = String::new();
+        let n = std::io::BufRead::read_line(&mut stdout, &mut line).unwrap_or(0);
+        assert!(n > 0, "run b ended before its first view: {lines:?}");
+        let accepted = line.contains("\"view_accepted\"");
+        lines.push(line);
+        if accepted {
+            break;
+        }
+    }
+    let killed = cluster.kill();
+    assert!(killed.len() >= 2, "postmaster and its children: {killed:?}");
+    let mut b_all = lines.concat();
+    std::io::Read::read_to_string(&mut stdout, &mut b_all).unwrap_or_else(|e| panic!("{e}"));
+    let b_out = b.wait_with_output().unwrap_or_else(|e| panic!("{e}"));
+    let b_out = std::process::Output {
+        stdout: b_all.into_bytes(),
+        ..b_out
+    };
+    let b_entry = spooled(&b_out, "b");
+    assert!(text(&b_out.stdout).contains("\"event\":\"profile_spooled\""));
+
+    // c: the database still down when the station starts
+    let c = calibrate_into(&url, dir.path(), "c", &["--set", &spool_arg]);
+    spooled(&c, "c");
+    let status = cubecal(&[
+        "profile",
+        "sync",
+        "--store",
+        &url,
+        "--store-password-file",
+        &pw,
+        "--spool",
+        &spool.to_string_lossy(),
+    ]);
+    assert_eq!(
+        status.status.code(),
+        Some(7),
+        "sync with the database down: {}",
+        text(&status.stderr)
+    );
+    assert_eq!(std::fs::read_dir(&spool).map(|d| d.count()).ok(), Some(2));
+
+    // the database back (crash recovery); b's entry kept aside to be synced a second time
+    cluster.restart();
+    let b_copy = std::fs::read(&b_entry).unwrap_or_else(|e| panic!("{e}"));
+    // d: drains b and c, in run order, before its own commit
+    let d = calibrate_into(&url, dir.path(), "d", &["--set", &spool_arg]);
+    assert_eq!(d.status.code(), Some(0), "{}", text(&d.stderr));
+    assert!(result_line(&d)["profile_waits_for"].is_null());
+    let drained: Vec<serde_json::Value> = text(&d.stdout)
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .filter(|v: &serde_json::Value| v["event"] == "spool_drained")
+        .collect();
+    assert_eq!(drained.len(), 1, "{}", text(&d.stdout));
+    assert_eq!(drained[0]["committed"], 2);
+    assert_eq!(drained[0]["waiting"], 0);
+    assert_eq!(std::fs::read_dir(&spool).map(|d| d.count()).ok(), Some(0));
+
+    // b's entry again (its first drain had committed it): recognised, nothing written twice
+    std::fs::write(&b_entry, &b_copy).unwrap_or_else(|e| panic!("{e}"));
+    let again = cubecal(&[
+        "profile",
+        "sync",
+        "--json",
+        "--store",
+        &url,
+        "--store-password-file",
+        &pw,
+        "--spool",
+        &spool.to_string_lossy(),
+    ]);
+    assert_eq!(again.status.code(), Some(0), "{}", text(&again.stderr));
+    let v: serde_json::Value =
+        serde_json::from_slice(&again.stdout).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(
+        v["drained"]["already_stored"].as_array().map(Vec::len),
+        Some(1),
+        "{v}"
+    );
+    assert_eq!(
+        v["drained"]["committed"].as_array().map(Vec::len),
+        Some(0),
+        "{v}"
+    );
+    assert_eq!(std::fs::read_dir(&spool).map(|d| d.count()).ok(), Some(0));
+
+    // the history: a, b, c, d — each once, d current
+    let store = PgStore::connect(&url, Some(pg::PASSWORD.into())).unwrap_or_else(|e| panic!("{e}"));
+    let list = store.list_cameras().unwrap_or_else(|e| panic!("{e}"));
+    let [camera] = list.as_slice() else {
+        panic!("expected one camera, got {list:?}")
+    };
+    let ids: Vec<String> = ["a", "b", "c", "d"]
+        .iter()
+        .map(|r| run_id(&dir.path().join(r)))
+        .collect();
+    let expected: Vec<(&str, &str)> = ids
+        .iter()
+        .zip(["history", "history", "history", "current"])
+        .map(|(id, state)| (id.as_str(), state))
+        .collect();
+    assert_runs(&store, &camera.folder, &expected);
 }

@@ -152,6 +152,18 @@ impl EventSink for Human {
             Event::ViewRejected { name, reason, .. } => {
                 self.line(format!("{name}: rejected: {reason}"));
             }
+            Event::SpoolDrained {
+                store,
+                committed,
+                already_stored,
+                failed,
+                waiting,
+            } => {
+                self.line(format!(
+                    "spool: {} waiting profile(s) committed to {store}, {failed} refused (set aside), {waiting} still waiting",
+                    committed + already_stored
+                ));
+            }
             Event::Solving { views, points } => {
                 if let Some(b) = self.bar.take() {
                     b.finish_and_clear();
@@ -200,7 +212,7 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
         rig_path,
         run_dir: &run_dir,
     };
-    let result = if out.json {
+    let mut result = if out.json {
         station::run(&spec, hw, &mut JsonLines, &stop)?
     } else {
         let mut human = Human { bar: None };
@@ -210,7 +222,8 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
         }
         r?
     };
-    super::report::write_for_run(&run_dir, &mut station::event::NullSink);
+    let previews = std::mem::take(&mut result.previews);
+    super::report::write_for_run(&run_dir, previews, &mut station::event::NullSink);
     if out.json {
         print_json(&result)?;
     } else {
@@ -287,6 +300,10 @@ fn print_human(r: &RunResult, store: Option<&std::path::Path>) {
         }
     }
     match (&r.profile, store) {
+        (Some(p), Some(_)) if let Some(waits) = &r.profile_waits_for => w(format!(
+            "profile: {} (waiting in the spool: {waits} unreachable; committed when it returns)",
+            p.display()
+        )),
         (Some(p), Some(s)) => w(format!(
             "profile: {} (stored in {})",
             p.display(),

@@ -1,7 +1,8 @@
-//! `cubecal profile list | show | export (get) | diff | rollback | migrate`: read and manage the
+//! `cubecal profile list | show | export (get) | diff | rollback | migrate | sync`: read and manage the
 //! per-device profile store (`cubecal::profile`): a directory, or a PostgreSQL database named by
 //! `--store postgres://USER@HOST/DB` (password from `--store-password-file` or `PGPASSWORD`, never the
-//! URL). `migrate` applies the database schema's migrations.
+//! URL). `migrate` applies the database schema's migrations; `sync` commits the profiles that wait in a
+//! station's spool (runs that passed while the store was unreachable, [`cubecal::profile::spool`]).
 //!
 //! `DEVICE` is a camera identity (`usb:046d:0825:SERIAL`) or its folder name in the store (as `list`
 //! prints it); `show`, `export` and `diff` also take a profile file (a run's `profile.json`), read
@@ -84,6 +85,15 @@ pub enum ProfileCommand {
     },
     /// Create or upgrade a PostgreSQL store's tables (the migrations in migrations/postgres/).
     Migrate(StoreArg),
+    /// Commit the profiles waiting in the spool (runs that passed while the store was unreachable),
+    /// each exactly once; exit 7 when the store is still unreachable (they keep waiting).
+    Sync {
+        /// The station's spool directory (output.spool).
+        #[arg(long, default_value = cubecal::station::config::DEFAULT_SPOOL)]
+        spool: PathBuf,
+        #[command(flatten)]
+        store: StoreArg,
+    },
 }
 
 pub fn run(cmd: ProfileCommand, out: Output) -> anyhow::Result<u8> {
@@ -104,7 +114,52 @@ pub fn run(cmd: ProfileCommand, out: Output) -> anyhow::Result<u8> {
         } => diff(&store, &a, &b, jump_sigma, out),
         ProfileCommand::Rollback { device, store } => rollback(&*open(&store)?, &device, out),
         ProfileCommand::Migrate(store) => migrate(&store, out),
+        ProfileCommand::Sync { spool, store } => sync(&store, &spool, out),
     }
+}
+
+/// `profile sync`: drain the spool into the store.
+#[allow(clippy::print_stdout)]
+fn sync(s: &StoreArg, spool_dir: &Path, out: Output) -> anyhow::Result<u8> {
+    let spool = profile::spool::Spool::new(spool_dir);
+    let store = profile::open_store(&s.store, s.store_password_file.as_deref())
+        .with_context(|| format!("opening the profile store {}", describe(&s.store)))?;
+    let drained = spool
+        .drain(&*store)
+        .with_context(|| format!("draining the spool {}", spool_dir.display()))?;
+    if out.json {
+        println!(
+            "{}",
+            serde_json::json!({ "store": store.describe(), "spool": spool_dir, "drained": drained })
+        );
+    } else {
+        for (run, location) in &drained.committed {
+            println!("committed {run}: {}", location.display());
+        }
+        for run in &drained.already_stored {
+            println!("already stored {run}: removed from the spool");
+        }
+        for (entry, reason) in &drained.failed {
+            println!("refused {}: {reason}", entry.display());
+        }
+        println!(
+            "{}: {} committed, {} already stored, {} refused (in {}), {} waiting",
+            store.describe(),
+            drained.committed.len(),
+            drained.already_stored.len(),
+            drained.failed.len(),
+            spool_dir.join(profile::spool::FAILED).display(),
+            drained.waiting
+        );
+        if let Some(why) = &drained.stopped {
+            println!("stopped: {why}");
+        }
+    }
+    Ok(if drained.stopped.is_some() {
+        cubecal::exit::IO
+    } else {
+        cubecal::exit::SUCCESS
+    })
 }
 
 fn open(s: &StoreArg) -> anyhow::Result<Box<dyn ProfileStore>> {

@@ -63,11 +63,15 @@ fn print_written(path: &std::path::Path, out: Output) {
 }
 
 /// The run's `report.html`, drawn once the station's run has returned (the station emits its results;
-/// front ends decide what to render). The watchdog keeps being pinged through `sink` meanwhile. The
+/// front ends decide what to render), its thumbnails on the station's `previews` of the frames. The watchdog keeps being pinged through `sink` meanwhile. The
 /// report is for people: a run whose report cannot be drawn is still a run, so a failure is logged.
-pub(super) fn write_for_run(run_dir: &Path, sink: &mut dyn EventSink) {
+pub(super) fn write_for_run(
+    run_dir: &Path,
+    previews: Vec<cubecal::run::preview::FramePreview>,
+    sink: &mut dyn EventSink,
+) {
     if let Err(e) = station::notify::alive_during(sink, station::SOLVE_LIMIT, || {
-        cubecal::report::write_run_report(run_dir)
+        cubecal::report::write_run_report_with(run_dir, previews)
     }) {
         tracing::warn!(error = %e, "could not write the run's report.html");
     }

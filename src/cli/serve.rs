@@ -99,6 +99,7 @@ fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow:
         rig,
         run_dir,
     } = setup::prepare(&request)?;
+    report_spool(&cfg, sink, "before the run");
     // No operator: a service cannot answer a manual turntable's prompts (the station says so).
     let hw = station::hardware::open(&cfg, &rig, None)?;
     if stop.load(Ordering::SeqCst) {
@@ -111,8 +112,10 @@ fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow:
         rig_path,
         run_dir: &run_dir,
     };
-    let result = station::run(&spec, hw, sink, stop)?;
-    super::report::write_for_run(&run_dir, sink);
+    let mut result = station::run(&spec, hw, sink, stop)?;
+    report_spool(&cfg, sink, "after the run");
+    let previews = std::mem::take(&mut result.previews);
+    super::report::write_for_run(&run_dir, previews, sink);
     let mut o = std::io::stdout().lock();
     if sink.json {
         let _ = writeln!(o, "{}", serde_json::to_string(&result)?);
@@ -128,6 +131,35 @@ fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow:
         let _ = writeln!(o, "run directory: {}", result.run_dir.display());
     }
     Ok(result.exit_code())
+}
+
+/// The spool's depth in the service status (`STATUS=spool: N profile(s) waiting for STORE in DIR`) and
+/// on stdout, when the station has a store: profiles that passed while the store was unreachable and
+/// wait to be committed (by this run's commit, or `cubecal profile sync`).
+fn report_spool(cfg: &station::StationConfig, sink: &mut ServiceSink, when: &str) {
+    let Some(store) = &cfg.output.store else {
+        return;
+    };
+    let dir = cfg.output.spool_dir();
+    let store = cubecal::profile::backend::describe_location(store);
+    let line = match cubecal::profile::spool::Spool::new(&dir).depth() {
+        Ok(n) => format!(
+            "spool: {n} profile(s) waiting for {store} in {} ({when})",
+            dir.display()
+        ),
+        Err(e) => format!("spool: cannot read {} ({when}): {e}", dir.display()),
+    };
+    sink.notifier.status(&line);
+    let mut o = std::io::stdout().lock();
+    let _ = if sink.json {
+        writeln!(
+            o,
+            "{}",
+            serde_json::json!({ "event": "spool", "status": line })
+        )
+    } else {
+        writeln!(o, "{line}")
+    };
 }
 
 /// On the first SIGTERM or SIGINT: tell systemd we are stopping, and set the station's stop flag.

@@ -86,7 +86,7 @@ pub struct XCorner {
 }
 
 /// Everything found in one frame.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct FrameDetection {
     pub width: u32,
     pub height: u32,

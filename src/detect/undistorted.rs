@@ -65,7 +65,7 @@ impl PlaneMap for Undistorted<'_> {
         // 1e-7 px), and the Jacobian's sign there says the point is on the physical side of a fold.
         if let Some((d0, p0, inv0)) = self.last.get() {
             let start = p0 + inv0 * (d - d0);
-            let (at, j, _) = self.camera.distort_with_jacobians(start.x, start.y);
+            let (at, j) = self.camera.distort_with_point_jacobian(start.x, start.y);
             let r = at - d;
             if r.norm() <= WARM_RESIDUAL
                 && j.determinant() > 0.0
@@ -83,7 +83,7 @@ impl PlaneMap for Undistorted<'_> {
 
     fn to_image(&self, q: Vector2<f64>) -> Option<(Vector2<f64>, Matrix2<f64>)> {
         let p = self.normalised(q);
-        let (d, j_xy, _) = self.camera.distort_with_jacobians(p.x, p.y);
+        let (d, j_xy) = self.camera.distort_with_point_jacobian(p.x, p.y);
         let k = self.scale();
         let jac = k * j_xy * k.try_inverse()?;
         let uv = self.camera.to_pixel(&d);

@@ -148,6 +148,15 @@ impl StoreLocation {
     }
 }
 
+/// The store `value` names as it may be shown (a directory, or the URL without password or options),
+/// the same text as the opened store's [`ProfileStore::describe`].
+pub fn describe_location(value: &Path) -> String {
+    match StoreLocation::parse(value) {
+        StoreLocation::Dir(dir) => dir.display().to_string(),
+        StoreLocation::Postgres(url) => super::postgres::redact(&url),
+    }
+}
+
 /// The PostgreSQL password: the first line of `password_file` when given, else `PGPASSWORD`, else none
 /// (peer or trust authentication, or a `.pgpass`-less set-up that needs none).
 pub fn read_password(password_file: Option<&Path>) -> Result<Option<String>, ProfileError> {

@@ -39,6 +39,7 @@ use crate::run::Verdict;
 pub mod backend;
 pub mod export;
 pub mod postgres;
+pub mod spool;
 pub mod store;
 
 pub use backend::{
@@ -230,6 +231,32 @@ pub enum ProfileError {
 }
 
 impl ProfileError {
+    /// Whether the store could not be reached (the connection refused, reset, closed or timed out; the
+    /// server shutting down, crashed or still recovering): the profile may wait in the
+    /// [`spool`] and be committed later. A refusal by a reachable store (a role without the right,
+    /// a schema to migrate, an invalid profile) is not.
+    pub fn is_unreachable(&self) -> bool {
+        let ProfileError::Database { source, .. } = self else {
+            return false;
+        };
+        if let Some(code) = source.code() {
+            let c = code.code();
+            // class 08: connection exception; 57P01–57P03: admin/crash shutdown, cannot connect now
+            return c.starts_with("08") || matches!(c, "57P01" | "57P02" | "57P03");
+        }
+        if source.is_closed() || source.to_string() == "timeout waiting for server" {
+            return true;
+        }
+        let mut cause = std::error::Error::source(source);
+        while let Some(e) = cause {
+            if e.is::<std::io::Error>() {
+                return true;
+            }
+            cause = e.source();
+        }
+        false
+    }
+
     /// The documented exit code for this error (see [`crate::exit`]).
     pub fn exit_code(&self) -> u8 {
         match self {
@@ -248,6 +275,17 @@ impl ProfileError {
             | ProfileError::NoHistory { .. } => crate::exit::BAD_INPUT,
         }
     }
+}
+
+/// `e` and its causes in one line (`a: b: c`), for messages kept in files and notes.
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut parts = vec![e.to_string()];
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        parts.push(c.to_string());
+        cause = c.source();
+    }
+    parts.join(": ")
 }
 
 #[derive(Serialize)]

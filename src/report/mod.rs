@@ -255,140 +255,151 @@ fn render_run_beside(
         path: data.dir.join(run::RESULT),
         source,
     })?;
-    let image_size = cal.image_size;
-    let (residuals, stats, no_pose) =
-        analysis::residuals(&cam, &data.observations, cal, &result.held_out);
+    std::thread::scope(|scope| {
+        let image_size = cal.image_size;
+        // The two lens plots (a dense field each) on a thread of their own, beside the other four.
+        let cam_ref = &cam;
+        let lens = scope.spawn(move || {
+            let start = std::time::Instant::now();
+            lens_plots(cal, cam_ref).map(|r| (r, start.elapsed()))
+        });
+        let (residuals, stats, no_pose) =
+            analysis::residuals(&cam, &data.observations, cal, &result.held_out);
 
-    // Coverage: every accepted corner (fitted and held out).
-    lap("residuals", &mut timings);
-    let face_names: Vec<String> = data.rig.faces.iter().map(|f| f.name.clone()).collect();
-    let points: Vec<((f64, f64), Option<usize>)> = data
-        .observations
-        .views
-        .iter()
-        .flat_map(|v| v.points.iter())
-        .map(|p| {
-            let face = p
-                .face
-                .as_deref()
-                .and_then(|n| face_names.iter().position(|f| f == n));
-            ((p.uv[0], p.uv[1]), face)
-        })
-        .collect();
-    let grid = CoverageGrid::count(
-        points
+        // Coverage: every accepted corner (fitted and held out).
+        lap("residuals", &mut timings);
+        let face_names: Vec<String> = data.rig.faces.iter().map(|f| f.name.clone()).collect();
+        let points: Vec<((f64, f64), Option<usize>)> = data
+            .observations
+            .views
             .iter()
-            .map(|&((u, v), _)| nalgebra::Vector2::new(u, v)),
-        image_size,
-        COVERAGE_GRID,
-    );
-    let mut plots = Vec::new();
-    plots.push(plot(
-        &CoverageFigure {
+            .flat_map(|v| v.points.iter())
+            .map(|p| {
+                let face = p
+                    .face
+                    .as_deref()
+                    .and_then(|n| face_names.iter().position(|f| f == n));
+                ((p.uv[0], p.uv[1]), face)
+            })
+            .collect();
+        let grid = CoverageGrid::count(
+            points
+                .iter()
+                .map(|&((u, v), _)| nalgebra::Vector2::new(u, v)),
             image_size,
-            points,
-            face_names: face_names.clone(),
-            grid: grid.clone(),
-        },
-        format!(
-            "Every accepted corner over the image, coloured by face, on the {}×{} coverage grid \
-             (green: cell holds corners).",
-            COVERAGE_GRID.0, COVERAGE_GRID.1
-        ),
-    )?);
+            COVERAGE_GRID,
+        );
+        let mut plots = Vec::new();
+        plots.push(plot(
+            &CoverageFigure {
+                image_size,
+                points,
+                face_names: face_names.clone(),
+                grid: grid.clone(),
+            },
+            format!(
+                "Every accepted corner over the image, coloured by face, on the {}×{} coverage grid \
+                 (green: cell holds corners).",
+                COVERAGE_GRID.0, COVERAGE_GRID.1
+            ),
+        )?);
 
-    lap("coverage plot", &mut timings);
-    let norms: Vec<f64> = residuals.iter().map(|r| r.r.norm()).collect();
-    let (scale, bar_px) = ResidualFigure::choose_scale(image_size, &norms);
-    let arrows = residuals
-        .iter()
-        .map(|r| {
-            let kind = if r.held_out {
-                PointKind::HeldOut
-            } else if r.outlier {
-                PointKind::Outlier
-            } else {
-                PointKind::Fitted
-            };
-            ((r.uv.x, r.uv.y), (r.r.x, r.r.y), kind)
+        lap("coverage plot", &mut timings);
+        let norms: Vec<f64> = residuals.iter().map(|r| r.r.norm()).collect();
+        let (scale, bar_px) = ResidualFigure::choose_scale(image_size, &norms);
+        let arrows = residuals
+            .iter()
+            .map(|r| {
+                let kind = if r.held_out {
+                    PointKind::HeldOut
+                } else if r.outlier {
+                    PointKind::Outlier
+                } else {
+                    PointKind::Fitted
+                };
+                ((r.uv.x, r.uv.y), (r.r.x, r.r.y), kind)
+            })
+            .collect();
+        plots.push(plot(
+            &ResidualFigure {
+                image_size,
+                arrows,
+                scale,
+                bar_px,
+            },
+            format!(
+                "Residual of every corner drawn from the corner, magnified {scale}×; the bar is a \
+                 {bar_px} px residual at that scale. A pattern (swirl, radial flow) means a model error; \
+                 noise looks random."
+            ),
+        )?);
+
+        lap("residual plot", &mut timings);
+        let sigma = if cal.sigma_px > 0.0 && cal.sigma_px.is_finite() {
+            cal.sigma_px
+        } else {
+            1.0
+        };
+        let components = residuals
+            .iter()
+            .filter(|r| !r.held_out && !r.outlier)
+            .flat_map(|r| [r.r.x, r.r.y]);
+        plots.push(plot(
+            &HistogramFigure {
+                hist: analysis::histogram(components, sigma),
+                sigma_px: sigma,
+            },
+            "Residual components of the fitted inliers in bins of σ/4, with the normal density \
+             expected for corner noise σ (red). Heavy tails or a skew mean outliers or a model error."
+                .to_string(),
+        )?);
+
+        lap("histogram plot", &mut timings);
+        let median = analysis::median_fitted_rms(&stats);
+        plots.push(plot(
+            &ViewRmsFigure {
+                stats: stats.clone(),
+                sigma_px: cal.sigma_px,
+                outlier_above: median.map(|m| m * OUTLIER_VIEW_FACTOR),
+            },
+            format!(
+                "RMS of each view's residual components (outlier points excluded). Dashed: σ (grey) and \
+                 {OUTLIER_VIEW_FACTOR}× the median fitted view (red): a view above it is an outlier view."
+            ),
+        )?);
+
+        lap("per-view plot", &mut timings);
+        let mut notes = Vec::new();
+        if !no_pose.is_empty() {
+            notes.push(format!(
+                "{} observed view(s) have no pose in result.json and are not in the residual plots: {}",
+                no_pose.len(),
+                no_pose.join(", ")
+            ));
+        }
+        let ((lens, lens_notes), took) = match lens.join() {
+            Ok(r) => r?,
+            Err(panic) => std::panic::resume_unwind(panic),
+        };
+        plots.extend(lens);
+        notes.extend(lens_notes);
+        lap("waiting for the lens plots", &mut timings);
+        timings.push(("distortion and uncertainty plots (beside)", took));
+        let (thumbs, took) = thumbs()?;
+        lap("waiting for the thumbnails", &mut timings);
+        timings.push(("thumbnails (beside the plots)", took));
+        let html = html(data, &plots, &thumbs, &stats, &grid, &notes, png_dir);
+        lap("html", &mut timings);
+        for (stage, t) in &timings {
+            tracing::debug!(stage, ms = t.as_secs_f64() * 1e3, "report stage");
+        }
+        Ok(RunReport {
+            html,
+            plots,
+            thumbs,
+            coverage: grid,
+            timings,
         })
-        .collect();
-    plots.push(plot(
-        &ResidualFigure {
-            image_size,
-            arrows,
-            scale,
-            bar_px,
-        },
-        format!(
-            "Residual of every corner drawn from the corner, magnified {scale}×; the bar is a \
-             {bar_px} px residual at that scale. A pattern (swirl, radial flow) means a model error; \
-             noise looks random."
-        ),
-    )?);
-
-    lap("residual plot", &mut timings);
-    let sigma = if cal.sigma_px > 0.0 && cal.sigma_px.is_finite() {
-        cal.sigma_px
-    } else {
-        1.0
-    };
-    let components = residuals
-        .iter()
-        .filter(|r| !r.held_out && !r.outlier)
-        .flat_map(|r| [r.r.x, r.r.y]);
-    plots.push(plot(
-        &HistogramFigure {
-            hist: analysis::histogram(components, sigma),
-            sigma_px: sigma,
-        },
-        "Residual components of the fitted inliers in bins of σ/4, with the normal density \
-         expected for corner noise σ (red). Heavy tails or a skew mean outliers or a model error."
-            .to_string(),
-    )?);
-
-    lap("histogram plot", &mut timings);
-    let median = analysis::median_fitted_rms(&stats);
-    plots.push(plot(
-        &ViewRmsFigure {
-            stats: stats.clone(),
-            sigma_px: cal.sigma_px,
-            outlier_above: median.map(|m| m * OUTLIER_VIEW_FACTOR),
-        },
-        format!(
-            "RMS of each view's residual components (outlier points excluded). Dashed: σ (grey) and \
-             {OUTLIER_VIEW_FACTOR}× the median fitted view (red): a view above it is an outlier view."
-        ),
-    )?);
-
-    lap("per-view plot", &mut timings);
-    let mut notes = Vec::new();
-    if !no_pose.is_empty() {
-        notes.push(format!(
-            "{} observed view(s) have no pose in result.json and are not in the residual plots: {}",
-            no_pose.len(),
-            no_pose.join(", ")
-        ));
-    }
-    let (lens, lens_notes) = lens_plots(cal, &cam)?;
-    plots.extend(lens);
-    notes.extend(lens_notes);
-
-    lap("distortion and uncertainty plots", &mut timings);
-    let (thumbs, took) = thumbs()?;
-    lap("waiting for the thumbnails", &mut timings);
-    timings.push(("thumbnails (beside the plots)", took));
-    let html = html(data, &plots, &thumbs, &stats, &grid, &notes, png_dir);
-    lap("html", &mut timings);
-    for (stage, t) in &timings {
-        tracing::debug!(stage, ms = t.as_secs_f64() * 1e3, "report stage");
-    }
-    Ok(RunReport {
-        html,
-        plots,
-        thumbs,
-        coverage: grid,
-        timings,
     })
 }
 
@@ -481,16 +492,42 @@ fn thumbnails(data: &RunData) -> Result<Vec<Thumb>, ReportError> {
     } else {
         data.result.views.clone()
     };
-    // One thumbnail per pose, on up to four threads (decoding, scaling and encoding dominate).
+    let previews: std::collections::HashMap<&str, &crate::run::preview::FramePreview> = data
+        .previews
+        .iter()
+        .map(|p| (p.frame.as_str(), p))
+        .collect();
+    // One thumbnail per pose, on up to four threads (decoding, scaling and encoding dominate; a
+    // preview from the station saves the first two).
     let one = |o: &ViewOutcome| -> Result<Thumb, ReportError> {
         let obs = obs_by_name.get(o.name.as_str()).copied();
         let frame = o
             .frame
             .clone()
             .or_else(|| obs.and_then(|v| v.frame.clone()));
-        let png = match &frame {
-            None => Err("no frame recorded for this view".to_string()),
-            Some(f) => {
+        let preview = frame
+            .as_deref()
+            .and_then(|f| previews.get(f).copied())
+            .and_then(|p| {
+                let (w, h) = p.full_size;
+                let det = match obs {
+                    Some(v) => thumbs::detection_from_view(v, &data.rig, w, h),
+                    None => p.detection.clone()?,
+                };
+                Some((p, det))
+            });
+        let png = match (&frame, preview) {
+            (None, _) => Err("no frame recorded for this view".to_string()),
+            (Some(f), Some((p, det))) => {
+                let path = data.dir.join(run::SESSION).join(f);
+                let rgb = thumbs::thumbnail_of_preview(&p.image, p.factor, &det, &data.rig)
+                    .map_err(|source| ReportError::Plot {
+                        plot: "thumbnail",
+                        source,
+                    })?;
+                Ok(encode_png(&rgb, &path)?)
+            }
+            (Some(f), None) => {
                 let path = data.dir.join(run::SESSION).join(f);
                 match thumbs::load_frame(&path) {
                     Err(e) => Err(format!("frame {f} cannot be read: {e}")),
@@ -531,6 +568,20 @@ fn thumbnails(data: &RunData) -> Result<Vec<Thumb>, ReportError> {
             png,
         })
     };
+    let from_previews = outcomes
+        .iter()
+        .filter(|o| {
+            let obs = obs_by_name.get(o.name.as_str());
+            (o.frame.as_deref().or(obs.and_then(|v| v.frame.as_deref())))
+                .and_then(|f| previews.get(f))
+                .is_some_and(|p| obs.is_some() || p.detection.is_some())
+        })
+        .count();
+    tracing::debug!(
+        from_previews,
+        decoded = outcomes.len() - from_previews,
+        "thumbnails"
+    );
     crate::render::parallel_map(outcomes.len(), |i| one(&outcomes[i]))
         .into_iter()
         .collect()
@@ -857,7 +908,25 @@ pub fn write_report(run_dir: &Path, out: &Path) -> Result<PathBuf, ReportError> 
     Ok(out.to_path_buf())
 }
 
-/// Write `RUN_DIR/report.html` and `RUN_DIR/report_plots/*.png` (the station's entry point).
+/// Write `RUN_DIR/report.html` and `RUN_DIR/report_plots/*.png`, decoding the session's frames for the
+/// thumbnails.
 pub fn write_run_report(run_dir: &Path) -> Result<PathBuf, ReportError> {
-    write_report(run_dir, &run_dir.join("report.html"))
+    write_run_report_with(run_dir, Vec::new())
+}
+
+/// [`write_run_report`] with the thumbnails drawn on `previews` (the run's
+/// [`crate::run::RunResult::previews`], as the station made them; a view without one is decoded from
+/// the session): a front end's entry point right after the run.
+pub fn write_run_report_with(
+    run_dir: &Path,
+    previews: Vec<crate::run::preview::FramePreview>,
+) -> Result<PathBuf, ReportError> {
+    let out = run_dir.join("report.html");
+    let mut data = RunData::load(run_dir)?;
+    data.previews = previews;
+    let png_dir_name = png_dir_name(&out);
+    let report = render_run(&data, &png_dir_name)?;
+    write_outputs(&out, &report.html, &report.plots, &png_dir_name)?;
+    tracing::info!(path = %out.display(), plots = report.plots.len(), thumbnails = report.thumbs.len(), "wrote run report");
+    Ok(out)
 }

@@ -82,6 +82,9 @@ pub struct RunData {
     pub result: RunResult,
     /// The session's manifest, when the session is there.
     pub manifest: Option<Manifest>,
+    /// The frames at thumbnail size as the station held them (empty when the run is read from its
+    /// directory: the thumbnails then decode the session's frames).
+    pub previews: Vec<crate::run::preview::FramePreview>,
 }
 
 pub use crate::run::{OBSERVATIONS, RESULT, RIG, SESSION};
@@ -124,6 +127,7 @@ impl RunData {
             observations,
             result,
             manifest,
+            previews: Vec::new(),
         };
         data.check()?;
         Ok(data)

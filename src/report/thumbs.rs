@@ -7,7 +7,9 @@
 //! shows what the detector found and the reason says why it was not enough. The overlay is drawn
 //! on the downscaled frame with the corners mapped to it, so lines stay one pixel wide.
 //!
-//! Downscaling is a hand-written integer box filter ([`downscale`]; its docs say why).
+//! Downscaling is a hand-written integer box filter ([`downscale`]; [`crate::run::preview`] says why).
+//! A run's report draws on the previews the station reduced while it held the frames
+//! ([`thumbnail_of_preview`]); a report drawn later from the run directory decodes the session's frames.
 
 use std::path::Path;
 
@@ -22,8 +24,7 @@ use crate::rig::Rig;
 
 use super::plots::{PlotError, face_rgb};
 
-/// Target width of a thumbnail (px); the frame is reduced by the nearest integer factor.
-pub const THUMB_WIDTH: u32 = 400;
+pub use crate::run::preview::{THUMB_WIDTH, downscale};
 /// Height of the legend strip under a thumbnail (px).
 pub const LEGEND_HEIGHT: u32 = 22;
 
@@ -116,13 +117,22 @@ pub fn thumbnail(
 ) -> Result<RgbImage, PlotError> {
     // The legend is text: the font must be there even when no plot was drawn before (a run
     // without a calibration has thumbnails only).
+    let k = crate::run::preview::factor(frame.width());
+    thumbnail_of_preview(&downscale(frame, k), k, det, rig)
+}
+
+/// [`thumbnail`] of a frame already reduced by `k` with [`downscale`] (`det` is in full-frame
+/// pixels).
+pub fn thumbnail_of_preview(
+    small: &GrayImage,
+    k: u32,
+    det: &FrameDetection,
+    rig: &Rig,
+) -> Result<RgbImage, PlotError> {
     super::plots::register_font()?;
-    let (w, _) = frame.dimensions();
-    let k = (f64::from(w) / f64::from(THUMB_WIDTH)).round().max(1.0) as u32;
-    let small = downscale(frame, k);
     let (tw, th) = small.dimensions();
     let s = 1.0 / f64::from(k);
-    let drawn = overlay::draw(&small, &scaled(det, s, tw, th), rig);
+    let drawn = overlay::draw(small, &scaled(det, s, tw, th), rig);
     let mut out = RgbImage::from_pixel(tw, th + LEGEND_HEIGHT, image::Rgb([255, 255, 255]));
     image::imageops::replace(&mut out, &drawn, 0, 0);
     let (ow, oh) = out.dimensions();
@@ -164,58 +174,7 @@ pub fn thumbnail(
     RgbImage::from_raw(ow, oh, buf).ok_or_else(|| "thumbnail buffer size mismatch".into())
 }
 
-/// Average `k × k` blocks (a box filter with an integer factor; the last partial row and column
-/// are dropped). Output pixel `i` covers input pixels `k·i .. k·i + k`, so pixel centres map by
-/// `u' = (u + ½)/k − ½`, the mapping the overlay's corners are moved by. Written here rather than
-/// calling `image::imageops::thumbnail` (any ratio) for that exact mapping and for speed outside
-/// release builds: per 1280×960 frame, measured by `cargo bench --bench report`, image's version
-/// takes 31 ms in the test profile (4.3 ms in release) against 3–5 ms for this loop with the
-/// overlay and legend.
-pub fn downscale(img: &GrayImage, k: u32) -> GrayImage {
-    let k = k.max(1);
-    let (w, h) = img.dimensions();
-    let (ow, oh) = ((w / k).max(1), (h / k).max(1));
-    let (kw, kh) = (k.min(w) as usize, k.min(h) as usize);
-    let src = img.as_raw();
-    let stride = w as usize;
-    let mut out = vec![0u8; ow as usize * oh as usize];
-    let mut sums = vec![0u32; ow as usize];
-    for oy in 0..oh as usize {
-        sums.iter_mut().for_each(|s| *s = 0);
-        for y in oy * kh..oy * kh + kh {
-            let row = &src[y * stride..y * stride + ow as usize * kw];
-            for (s, block) in sums.iter_mut().zip(row.chunks_exact(kw)) {
-                *s += block.iter().map(|&p| u32::from(p)).sum::<u32>();
-            }
-        }
-        let n = (kw * kh) as u32;
-        for (o, s) in out[oy * ow as usize..(oy + 1) * ow as usize]
-            .iter_mut()
-            .zip(&sums)
-        {
-            *o = ((s + n / 2) / n) as u8;
-        }
-    }
-    GrayImage::from_raw(ow, oh, out).unwrap_or_else(|| GrayImage::new(ow, oh))
-}
-
 /// Load a frame as 8-bit grey.
 pub fn load_frame(path: &Path) -> Result<GrayImage, image::ImageError> {
     Ok(image::open(path)?.to_luma8())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn downscale_averages_blocks() {
-        let img = GrayImage::from_fn(7, 5, |x, y| image::Luma([(10 * x + y) as u8]));
-        let s = downscale(&img, 2);
-        assert_eq!(s.dimensions(), (3, 2));
-        // Block (1, 1): x 2..4, y 2..4 → values 22, 23, 32, 33 → mean 27.5 → 28.
-        assert_eq!(s.get_pixel(1, 1).0[0], 28);
-        assert_eq!(s.get_pixel(0, 0).0[0], 6); // 0, 1, 10, 11 → 5.5 → 6
-        assert_eq!(downscale(&img, 1), img);
-    }
 }

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use crate::calib::report::CalibrationReport;
 use crate::capture::SourceInfo;
 
+pub mod preview;
 pub mod verdict;
 
 pub use verdict::{Check, Verdict};
@@ -60,6 +61,10 @@ pub struct RunResult {
     pub views: Vec<ViewRecord>,
     /// Where the profile went (null when none was written).
     pub profile: Option<PathBuf>,
+    /// The profile store that could not be reached: `profile` is then the profile's entry in the
+    /// local spool, committed when the store returns (see `crate::profile::spool`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub profile_waits_for: Option<String>,
     pub run_dir: PathBuf,
     pub device: SourceInfo,
     /// What the station decided beyond the config (e.g. "k3 fixed: not determined by the data").
@@ -68,6 +73,10 @@ pub struct RunResult {
     /// The solver's error when it could not calibrate.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub solve_error: Option<String>,
+    /// Each view's frame at thumbnail size, from the station (never in result.json: a report drawn
+    /// from the run directory decodes the session's frames instead).
+    #[serde(skip)]
+    pub previews: Vec<preview::FramePreview>,
 }
 
 impl RunResult {

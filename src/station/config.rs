@@ -321,6 +321,23 @@ pub struct OutputSection {
     pub store: Option<PathBuf>,
     /// File whose first line is the PostgreSQL password (else `PGPASSWORD` is used).
     pub store_password_file: Option<PathBuf>,
+    /// Where a passing run's profile waits while the store cannot be reached, until a later run,
+    /// `serve` or `cubecal profile sync` commits it (see [`crate::profile::spool`]). Default
+    /// [`DEFAULT_SPOOL`], relative to the working directory like the run directories.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub spool: Option<PathBuf>,
+}
+
+/// The spool directory when `output.spool` is not set.
+pub const DEFAULT_SPOOL: &str = "cubecal-spool";
+
+impl OutputSection {
+    /// `output.spool`, or [`DEFAULT_SPOOL`].
+    pub fn spool_dir(&self) -> PathBuf {
+        self.spool
+            .clone()
+            .unwrap_or_else(|| PathBuf::from(DEFAULT_SPOOL))
+    }
 }
 
 /// `[rig]`.

@@ -58,6 +58,23 @@ pub enum Event {
     Solving { views: usize, points: usize },
     /// The verdict of the run.
     Verdict { verdict: Verdict },
+    /// The profile store could not be reached: the passing profile waits in the spool at `path`
+    /// until a later run, `serve` or `cubecal profile sync` commits it; `waiting` profiles in all.
+    ProfileSpooled {
+        path: std::path::PathBuf,
+        store: String,
+        reason: String,
+        waiting: usize,
+    },
+    /// Profiles that waited in the spool were committed (`committed` now, `already_stored` found
+    /// stored by a drain cut short), `failed` set aside as refused; `waiting` are left.
+    SpoolDrained {
+        store: String,
+        committed: usize,
+        already_stored: usize,
+        failed: usize,
+        waiting: usize,
+    },
     /// Emitted by the station loop while waiting on hardware, so a service can ping its watchdog
     /// from the loop itself (a stalled loop stops the pings).
     Alive,

@@ -160,6 +160,8 @@ struct PoseData {
     image: Option<crate::capture::GrayImage>,
     /// The pose's photo could not be used (missing, empty, not an image, another size).
     unusable: bool,
+    /// The frame at thumbnail size (with the detection of a rejected view), for the run's report.
+    preview: Option<crate::run::preview::FramePreview>,
 }
 
 /// Run a station: see the module docs. Returns the result (with its verdict) or the error that ended
@@ -261,12 +263,15 @@ pub fn run(
         }));
     }
 
+    let mut poses = poses;
+    let previews: Vec<_> = poses.iter_mut().filter_map(|p| p.preview.take()).collect();
     let result = solve_and_judge(spec, &info, poses, sink);
     let mut result = result?;
+    result.previews = previews;
     // Files: observations and result; a passing run writes its profile.
     // A passing verdict always comes with a calibration (the checks run only after a solve).
     if let (true, Some(calibration)) = (result.verdict.pass, result.calibration.clone()) {
-        let path = write_profile(spec, &hw, &mut result, calibration)?;
+        let path = write_profile(spec, &hw, &mut result, calibration, sink)?;
         result.profile = Some(path);
     }
     write_json(&run_dir.join(crate::run::RESULT), &result)?;
@@ -442,7 +447,8 @@ impl Grabbed {
     }
 }
 
-/// Detect and check one pose's frames.
+/// Detect and check one pose's frames ([`examine_frames`]) and reduce the last to thumbnail size,
+/// with what the detector found when the view is rejected (an accepted view's observations say it).
 fn examine(
     spec: &RunSpec<'_>,
     finder: &mut CornerFinder,
@@ -451,6 +457,29 @@ fn examine(
     grabbed: Grabbed,
     angle: Option<f64>,
 ) -> Result<PoseData, StationError> {
+    let (mut pose, rejected_detection) =
+        examine_frames(spec, finder, frames, name, grabbed, angle)?;
+    if let (Some(file), Some(last)) = (&pose.record.frame, frames.last())
+        && !pose.unusable
+    {
+        pose.preview = Some(crate::run::preview::FramePreview::of(
+            file.clone(),
+            &last.image,
+            rejected_detection,
+        ));
+    }
+    Ok(pose)
+}
+
+/// Detect and check one pose's frames; a view rejected after detection comes with its detection.
+fn examine_frames(
+    spec: &RunSpec<'_>,
+    finder: &mut CornerFinder,
+    frames: &[crate::capture::Frame],
+    name: String,
+    grabbed: Grabbed,
+    angle: Option<f64>,
+) -> Result<(PoseData, Option<crate::detect::FrameDetection>), StationError> {
     let qa = &spec.config.qa;
     let mut record = ViewRecord {
         name,
@@ -472,32 +501,38 @@ fn examine(
         detection: None,
         image: None,
         unusable: false,
+        preview: None,
     };
     if let Some(reason) = grabbed.unusable {
         let mut pose = reject(record, reason);
         pose.unusable = true;
-        return Ok(pose);
+        return Ok((pose, None));
     }
     let Some(last) = frames.last() else {
-        return Ok(reject(record, "no frame".into()));
+        return Ok((reject(record, "no frame".into()), None));
     };
     if frames.len() >= 2 {
         let m = sharpness::motion_fraction(&frames[frames.len() - 2].image, &last.image);
         record.motion = Some(m);
         if m > qa.max_motion {
-            return Ok(reject(
-                record,
-                format!(
-                    "the image changed between consecutive frames ({:.1} % of the image): the rig or camera was still moving; increase turntable.settle_ms or fix the camera mount",
-                    100.0 * m
+            return Ok((
+                reject(
+                    record,
+                    format!(
+                        "the image changed between consecutive frames ({:.1} % of the image): the rig or camera was still moving; increase turntable.settle_ms or fix the camera mount",
+                        100.0 * m
+                    ),
                 ),
+                None,
             ));
         }
     }
     let det = match crate::detect::detect(finder, &last.image, spec.rig) {
         Ok(d) => d,
-        Err(e) => return Ok(reject(record, format!("detection failed: {e}"))),
+        Err(e) => return Ok((reject(record, format!("detection failed: {e}")), None)),
     };
+    let rejected =
+        |record: ViewRecord, reason: String| Ok((reject(record, reason), Some(det.clone())));
     record.faces = det.faces.len();
     record.corners = det.faces.iter().map(|f| f.corners.len()).sum();
     if det.faces.is_empty() {
@@ -505,18 +540,18 @@ fn examine(
             && b > qa.max_blur_px
         {
             record.blur_px = Some(b);
-            return Ok(reject(
+            return rejected(
                 record,
                 format!(
                     "image blurred: edges spread over σ ≈ {b:.1} px (at most {:.1}) and no rig face could be found; focus the camera on the rig",
                     qa.max_blur_px
                 ),
-            ));
+            );
         }
         let mut why: Vec<String> = det.rejected.iter().map(|r| r.reason.clone()).collect();
         why.dedup();
         why.truncate(3);
-        return Ok(reject(
+        return rejected(
             record,
             format!(
                 "no rig face labelled ({}); check that the rig is in view and that the rig file matches the printed rig",
@@ -526,29 +561,29 @@ fn examine(
                     why.join("; ")
                 }
             ),
-        ));
+        );
     }
     if record.corners < qa.min_corners {
-        return Ok(reject(
+        return rejected(
             record.clone(),
             format!(
                 "only {} corners labelled (at least {} needed)",
                 record.corners, qa.min_corners
             ),
-        ));
+        );
     }
     let blur = sharpness::blur_px(&last.image, &det.faces);
     record.blur_px = blur;
     if let Some(b) = blur
         && b > qa.max_blur_px
     {
-        return Ok(reject(
+        return rejected(
             record,
             format!(
                 "image blurred: edges spread over σ ≈ {b:.1} px (at most {:.1}); focus the camera on the rig",
                 qa.max_blur_px
             ),
-        ));
+        );
     }
     let mut points = Vec::with_capacity(record.corners);
     let mut faces = Vec::with_capacity(record.corners);
@@ -578,19 +613,23 @@ fn examine(
                 "pose not trusted, intrinsics used: {why} (labels certain up to a motion that moves only this view's pose, never the intrinsics)"
             )
         });
-    Ok(PoseData {
-        view: Some((
-            View {
-                name: record.name.clone(),
-                points,
-            },
-            faces,
-        )),
-        record,
-        detection: Some(det),
-        image: Some(last.image.clone()),
-        unusable: false,
-    })
+    Ok((
+        PoseData {
+            view: Some((
+                View {
+                    name: record.name.clone(),
+                    points,
+                },
+                faces,
+            )),
+            record,
+            detection: Some(det),
+            image: Some(last.image.clone()),
+            unusable: false,
+            preview: None,
+        },
+        None,
+    ))
 }
 
 /// Whether the accepted views already meet coverage and the σ targets (for `stop_when_sufficient`).
@@ -685,10 +724,12 @@ fn solve_and_judge(
         held_out: Vec::new(),
         views,
         profile: None,
+        profile_waits_for: None,
         run_dir: spec.run_dir.to_path_buf(),
         device: info.clone(),
         notes: Vec::new(),
         solve_error: None,
+        previews: Vec::new(),
     };
     if fit.len() < 2 {
         result.verdict = judge::too_few_views(fit.len(), cfg, &result.views);
@@ -804,6 +845,7 @@ fn write_profile(
     hw: &Hardware,
     result: &mut RunResult,
     calibration: CalibrationReport,
+    sink: &mut dyn EventSink,
 ) -> Result<PathBuf, StationError> {
     use crate::profile::{Identity, IdentityOrigin, Profile, RigRef, SessionRef};
     use sha2::{Digest, Sha256};
@@ -869,10 +911,6 @@ fn write_profile(
     let Some(store_value) = &spec.config.output.store else {
         return Ok(path);
     };
-    let store = crate::profile::open_store(
-        store_value,
-        spec.config.output.store_password_file.as_deref(),
-    )?;
     let provenance = crate::profile::Provenance {
         // the run's own profile.json (its creation time and session hash make it unique): a second
         // commit of the same run stores nothing new
@@ -880,13 +918,59 @@ fn write_profile(
         station: station_name(),
         report: Some(spec.run_dir.display().to_string()),
     };
-    let outcome = store.commit_run(
-        &profile,
-        &crate::profile::CommitOptions {
-            jump_sigma: spec.config.qa.max_jump_sigma,
-        },
-        &provenance,
-    )?;
+    let options = crate::profile::CommitOptions {
+        jump_sigma: spec.config.qa.max_jump_sigma,
+    };
+    let spool = crate::profile::spool::Spool::new(spec.config.output.spool_dir());
+    let opened = crate::profile::open_store(
+        store_value,
+        spec.config.output.store_password_file.as_deref(),
+    );
+    // The store unreachable (at the start of the commit or during it): the profile waits in the
+    // spool, and the run goes on as a pass that says where its profile is.
+    let spooled = |e: crate::profile::ProfileError,
+                   result: &mut RunResult,
+                   sink: &mut dyn EventSink|
+     -> Result<PathBuf, StationError> {
+        let store = crate::profile::backend::describe_location(store_value);
+        let reason = crate::profile::error_chain(&e);
+        let path = spool.put(&store, &profile, &options, &provenance, &reason)?;
+        let waiting = spool.depth()?;
+        result.notes.push(format!(
+            "the profile store {store} could not be reached ({reason}): the profile waits in {} and is committed when the store returns (the next run with this store, `cubecal serve`, or `cubecal profile sync --store {store} --spool {}`)",
+            path.display(),
+            spool.dir().display()
+        ));
+        result.profile_waits_for = Some(store.clone());
+        sink.event(&Event::ProfileSpooled {
+            path: path.clone(),
+            store,
+            reason,
+            waiting,
+        });
+        Ok(path)
+    };
+    let store = match opened {
+        Ok(store) => store,
+        Err(e) if e.is_unreachable() => return spooled(e, result, sink),
+        Err(e) => return Err(e.into()),
+    };
+    // Profiles that waited for this store go first, so the store's order is the runs' order.
+    if spool.depth()? > 0 {
+        let drained = spool.drain(store.as_ref())?;
+        sink.event(&Event::SpoolDrained {
+            store: store.describe(),
+            committed: drained.committed.len(),
+            already_stored: drained.already_stored.len(),
+            failed: drained.failed.len(),
+            waiting: drained.waiting,
+        });
+    }
+    let outcome = match store.commit_run(&profile, &options, &provenance) {
+        Ok(o) => o,
+        Err(e) if e.is_unreachable() => return spooled(e, result, sink),
+        Err(e) => return Err(e.into()),
+    };
     if outcome.jump {
         result.notes.push(format!(
             "the profile moved by more than {}σ from the previous one of this camera (see `cubecal profile diff`): a bumped lens or a different camera?",

@@ -256,6 +256,25 @@ impl SystemdNotifier {
                 format!("solving: {views} view(s), {points} points")
             }
             Event::Verdict { verdict } => verdict_line(verdict),
+            Event::ProfileSpooled {
+                path,
+                store,
+                waiting,
+                ..
+            } => format!(
+                "profile store {store} unreachable: profile waits in {} (spool: {waiting} waiting)",
+                path.display()
+            ),
+            Event::SpoolDrained {
+                store,
+                committed,
+                already_stored,
+                failed,
+                waiting,
+            } => format!(
+                "spool: {} committed to {store}, {failed} refused, {waiting} waiting",
+                committed + already_stored
+            ),
             Event::Alive => return None,
         };
         Some(one_line(&line))

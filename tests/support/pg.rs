@@ -25,6 +25,8 @@ pub struct Cluster {
     pub password_file: PathBuf,
     bindir: PathBuf,
     as_postgres: bool,
+    /// The server options `pg_ctl start -o` was given (for a restart).
+    options: String,
 }
 
 fn tools_required() -> bool {
@@ -94,12 +96,20 @@ impl Cluster {
             .and_then(|l| l.local_addr())
             .map_err(|e| e.to_string())?
             .port();
+        let mut options = format!(
+            "-p {port} -k {} -c listen_addresses=127.0.0.1 -c max_connections=200",
+            dir.display()
+        );
+        if !durable {
+            options += " -c fsync=off -c full_page_writes=off";
+        }
         let cluster = Cluster {
             port,
             dir: dir.clone(),
             password_file,
             bindir,
             as_postgres,
+            options,
         };
         cluster.watchdog();
         let data = dir.join("data");
@@ -126,28 +136,103 @@ impl Cluster {
                 String::from_utf8_lossy(&out.stderr)
             ));
         }
-        let mut options = format!(
-            "-p {port} -k {} -c listen_addresses=127.0.0.1 -c max_connections=200",
-            dir.display()
-        );
-        if !durable {
-            options += " -c fsync=off -c full_page_writes=off";
-        }
-        let out = cluster
+        cluster.pg_start()?;
+        Ok(cluster)
+    }
+
+    /// `pg_ctl start` and wait until the server accepts connections.
+    fn pg_start(&self) -> Result<(), String> {
+        let out = self
             .tool("pg_ctl")
             .arg("-D")
-            .arg(&data)
+            .arg(self.dir.join("data"))
             .arg("-l")
-            .arg(dir.join("log"))
-            .args(["-w", "-t", "60", "-o", &options, "start"])
+            .arg(self.dir.join("log"))
+            .args(["-w", "-t", "60", "-o", &self.options, "start"])
             .stdout(Stdio::null())
             .output()
             .map_err(|e| format!("pg_ctl: {e}"))?;
         if !out.status.success() {
-            let log = std::fs::read_to_string(dir.join("log")).unwrap_or_default();
+            let log = std::fs::read_to_string(self.dir.join("log")).unwrap_or_default();
             return Err(format!("pg_ctl start failed: {log}"));
         }
-        Ok(cluster)
+        Ok(())
+    }
+
+    /// A cluster of the caller's own (not this binary's shared one), for a test that kills it.
+    #[allow(clippy::print_stderr)]
+    pub fn own() -> Option<Cluster> {
+        match Cluster::start(false) {
+            Ok(c) => Some(c),
+            Err(reason) => {
+                assert!(!tools_required(), "CUBECAL_REQUIRE_TOOLS=1 but {reason}");
+                eprintln!("skipped: {reason} (install postgresql: deploy/install-test-tools.sh)");
+                None
+            }
+        }
+    }
+
+    /// The server's processes (the postmaster, from `postmaster.pid`, and its children) killed with
+    /// SIGKILL at once, as the kernel's OOM killer or a power cut ends them: no shutdown, no
+    /// checkpoint. Returns the pids killed.
+    pub fn kill(&self) -> Vec<u32> {
+        let pidfile = self.dir.join("data/postmaster.pid");
+        let text = std::fs::read_to_string(&pidfile)
+            .unwrap_or_else(|e| panic!("{}: {e}", pidfile.display()));
+        let postmaster: u32 = text
+            .lines()
+            .next()
+            .and_then(|l| l.trim().parse().ok())
+            .unwrap_or_else(|| panic!("{}: no pid", pidfile.display()));
+        let mut pids = vec![postmaster];
+        for entry in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+            let Ok(pid) = entry.file_name().to_string_lossy().parse::<u32>() else {
+                continue;
+            };
+            // /proc/PID/stat: "pid (comm) state ppid …"; comm may hold spaces, so split after ')'
+            let ppid = std::fs::read_to_string(entry.path().join("stat"))
+                .ok()
+                .and_then(|s| {
+                    let rest = s.rsplit_once(')')?.1.to_string();
+                    rest.split_whitespace().nth(1)?.parse::<u32>().ok()
+                });
+            if ppid == Some(postmaster) {
+                pids.push(pid);
+            }
+        }
+        let status = Command::new("kill")
+            .arg("-KILL")
+            .args(pids.iter().map(|p| p.to_string()))
+            .status()
+            .unwrap_or_else(|e| panic!("kill: {e}"));
+        assert!(status.success(), "kill -KILL {pids:?} failed");
+        // wait until the postmaster is gone (its port closed)
+        for _ in 0..100 {
+            if !std::path::Path::new(&format!("/proc/{postmaster}")).exists()
+                || std::fs::read_to_string(format!("/proc/{postmaster}/stat")).is_ok_and(|s| {
+                    s.rsplit_once(')')
+                        .is_some_and(|(_, r)| r.trim_start().starts_with('Z'))
+                })
+            {
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        pids
+    }
+
+    /// Start the server again after [`Cluster::kill`] (PostgreSQL recovers from its WAL); retried while
+    /// the killed processes' shared memory is still being released.
+    pub fn restart(&self) {
+        let mut last = String::new();
+        for _ in 0..20 {
+            match self.pg_start() {
+                Ok(()) => return,
+                Err(e) => last = e,
+            }
+            std::thread::sleep(std::time::Duration::from_millis(250));
+        }
+        panic!("restarting the cluster: {last}");
     }
 
     /// A shell that waits for this process to end, then stops the cluster and removes its directory.
