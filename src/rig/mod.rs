@@ -23,6 +23,14 @@
 //!                              # described (a board larger than any view shows; see below)
 //! ```
 //!
+//! A ChArUco face (OpenCV's layout, see [`charuco`]) adds one key; its squares' colours then follow
+//! OpenCV's layout (`first_square` may not contradict it) and it has no `open_sides`:
+//! ```toml
+//! charuco = { dictionary = "DICT_5X5_250", marker_mm = 15.0, first_id = 0 }  # or ids = [...]
+//! ```
+//! `ids` lists the markers in OpenCV's order (white squares row by row from the top of the printed
+//! board); `first_id` numbers them consecutively. An id is used once in a rig per marker size.
+//!
 //! ## Face geometry
 //! Inner corner `(row r, col c)` is at `origin + c·square·col_dir + r·square·row_dir`. Squares are
 //! indexed `(i, j)` with `i ∈ 0..=rows`, `j ∈ 0..=cols`; square `(i, j)` spans face coordinates
