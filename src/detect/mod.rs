@@ -28,6 +28,7 @@ use crate::rig::CornerId;
 
 pub use front::CornerFinder;
 
+pub mod charuco;
 pub mod complete;
 pub mod crlb;
 mod dense;
@@ -140,8 +141,82 @@ impl FrameDetection {
     }
 }
 
-/// Corners → grids → labelled faces for one frame.
+/// Corners → grids → labelled faces for one frame. A rig's ChArUco faces are found by their
+/// markers ([`charuco`]), its checkerboard faces by their grids; in a mixed rig a checkerboard
+/// labelling that falls on a decoded ChArUco face is dropped with a reason.
 pub fn detect(
+    finder: &mut CornerFinder,
+    img: &GrayImage,
+    rig: &crate::rig::Rig,
+) -> Result<FrameDetection, DetectError> {
+    let (width, height) = img.dimensions();
+    if width < MIN_SIDE || height < MIN_SIDE {
+        return Err(DetectError::TooSmall { width, height });
+    }
+    let n_charuco = rig.faces.iter().filter(|f| f.charuco.is_some()).count();
+    if n_charuco == 0 {
+        return detect_checkerboards(finder, img, rig);
+    }
+    let found = charuco::detect(img, rig);
+    let mut faces = found.faces;
+    let mut rejected = found.rejected;
+    if found.markers.is_empty() {
+        rejected.push(label::Rejection::frame(
+            "no ArUco marker of the rig's ChArUco faces decoded".into(),
+        ));
+    }
+    if n_charuco < rig.faces.len() {
+        // The checkerboard faces alone, their indices mapped back to the rig's.
+        let index: Vec<usize> = (0..rig.faces.len())
+            .filter(|&k| rig.faces[k].charuco.is_none())
+            .collect();
+        let boards = crate::rig::Rig {
+            faces: index.iter().map(|&k| rig.faces[k].clone()).collect(),
+            ..rig.clone()
+        };
+        let checker = detect_checkerboards(finder, img, &boards)?;
+        rejected.extend(checker.rejected);
+        for mut f in checker.faces {
+            f.face = index[f.face];
+            let on_markers = f.corners.iter().any(|c| {
+                found.markers.iter().any(|m| {
+                    let centre = m.corners.iter().sum::<Vector2<f64>>() / 4.0;
+                    let side = (m.corners[0] - m.corners[2]).norm();
+                    (c.uv - centre).norm() < side
+                })
+            });
+            if on_markers {
+                rejected.push(label::Rejection {
+                    reason: format!(
+                        "grid labelled as checkerboard face '{}' lies on decoded ArUco markers",
+                        rig.faces[f.face].name
+                    ),
+                    corners: f
+                        .corners
+                        .iter()
+                        .map(|c| label::GridCorner {
+                            row: c.row,
+                            col: c.col,
+                            uv: c.uv,
+                        })
+                        .collect(),
+                });
+            } else {
+                faces.push(f);
+            }
+        }
+    }
+    faces.sort_by_key(|f| f.face);
+    Ok(FrameDetection {
+        width,
+        height,
+        faces,
+        rejected,
+    })
+}
+
+/// [`detect`] for a rig of checkerboard faces only.
+fn detect_checkerboards(
     finder: &mut CornerFinder,
     img: &GrayImage,
     rig: &crate::rig::Rig,

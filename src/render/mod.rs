@@ -292,8 +292,8 @@ impl<'a> Scene<'a> {
         &self,
         d: &Vector3<f64>,
         skip: Option<usize>,
-    ) -> Option<(f64, usize, bool, BoardRegion)> {
-        let mut best: Option<(f64, usize, bool, BoardRegion)> = None;
+    ) -> Option<(f64, usize, bool, BoardRegion, SquareColour)> {
+        let mut best: Option<(f64, usize, bool, BoardRegion, SquareColour)> = None;
         for (k, (face, plane)) in self.rig.faces.iter().zip(&self.planes).enumerate() {
             if Some(k) == skip {
                 continue;
@@ -309,7 +309,8 @@ impl<'a> Scene<'a> {
             let (a, b) = face.local(&(self.centre + d * t));
             let region = face.region_at(a, b);
             if region != BoardRegion::Outside {
-                best = Some((t, k, denom > 0.0, region));
+                let ink = face.ink_at(a, b).unwrap_or(SquareColour::White);
+                best = Some((t, k, denom > 0.0, region, ink));
             }
         }
         best
@@ -363,7 +364,7 @@ impl<'a> Scene<'a> {
             (Some(_), None) => true,
             _ => false,
         };
-        if use_board && let Some((_, face, back, region)) = board {
+        if use_board && let Some((_, face, back, region, ink)) = board {
             let n = self.planes[face].normal;
             let label = Label::Board {
                 face: face as u16,
@@ -373,12 +374,9 @@ impl<'a> Scene<'a> {
             if back {
                 return (label, p.body * self.shade(&-n));
             }
-            let reflectance = match region {
-                BoardRegion::Square { i, j } => match self.rig.faces[face].square_colour(i, j) {
-                    SquareColour::Black => p.black,
-                    SquareColour::White => p.white,
-                },
-                BoardRegion::Margin | BoardRegion::Outside => p.white,
+            let reflectance = match ink {
+                SquareColour::Black => p.black,
+                SquareColour::White => p.white,
             };
             return (label, reflectance * self.shade(&n));
         }

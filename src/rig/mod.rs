@@ -23,6 +23,14 @@
 //!                              # described (a board larger than any view shows; see below)
 //! ```
 //!
+//! A ChArUco face (OpenCV's layout, see [`charuco`]) adds one key; its squares' colours then follow
+//! OpenCV's layout (`first_square` may not contradict it) and it has no `open_sides`:
+//! ```toml
+//! charuco = { dictionary = "DICT_5X5_250", marker_mm = 15.0, first_id = 0 }  # or ids = [...]
+//! ```
+//! `ids` lists the markers in OpenCV's order (white squares row by row from the top of the printed
+//! board); `first_id` numbers them consecutively. An id is used once in a rig per marker size.
+//!
 //! ## Face geometry
 //! Inner corner `(row r, col c)` is at `origin + c·square·col_dir + r·square·row_dir`. Squares are
 //! indexed `(i, j)` with `i ∈ 0..=rows`, `j ∈ 0..=cols`; square `(i, j)` spans face coordinates
@@ -43,6 +51,7 @@
 //! (`rig.toml: faces[2].cols: expected an integer ≥ 2, got -3`). Direction vectors must be unit length
 //! and orthogonal within [`ORTHONORMAL_TOLERANCE`]; they are then re-orthonormalised exactly.
 
+pub mod charuco;
 pub mod survey;
 pub mod svg;
 
@@ -252,6 +261,8 @@ pub struct Face {
     pub first_square: SquareColour,
     /// Sides beyond which the pattern continues further than described (see the module docs).
     pub open_sides: Vec<FaceSide>,
+    /// Set for a ChArUco face: markers in its white squares ([`charuco`]).
+    pub charuco: Option<charuco::Charuco>,
 }
 
 /// A side of a face: its outermost row or column of inner corners.
@@ -346,6 +357,35 @@ impl Face {
     /// `(rows − i, cols − j)`, which has the same colour for every square exactly when `rows + cols` is even.
     pub fn is_point_symmetric(&self) -> bool {
         (self.rows + self.cols).is_multiple_of(2)
+    }
+
+    /// The printed colour at face coordinates `(a, b)` (mm from inner corner `(0, 0)`), `None`
+    /// outside the board: the square's colour, white in the margin, and on a ChArUco face the
+    /// markers' cells in its white squares.
+    pub fn ink_at(&self, a: f64, b: f64) -> Option<SquareColour> {
+        match self.region_at(a, b) {
+            BoardRegion::Outside => None,
+            BoardRegion::Margin => Some(SquareColour::White),
+            BoardRegion::Square { i, j } => {
+                let colour = self.square_colour(i, j);
+                let Some(ch) = &self.charuco else {
+                    return Some(colour);
+                };
+                if colour == SquareColour::Black {
+                    return Some(colour);
+                }
+                let (x, y) = charuco::opencv_square(self.rows, i, j);
+                let id = charuco::Charuco::marker_index(self.cols, x, y)
+                    .and_then(|k| ch.ids.get(k).copied());
+                let s = self.square_mm;
+                // OpenCV board coordinates: x from the left edge of the squares, y down from the top.
+                let (bx, by) = (a + s, self.rows as f64 * s - b);
+                Some(match id {
+                    Some(id) if ch.marker_ink(s, x, y, id, bx, by) => SquareColour::Black,
+                    _ => SquareColour::White,
+                })
+            }
+        }
     }
 
     /// Face coordinates `(a, b)` in mm of a rig-frame point: `a` along `col_dir`, `b` along `row_dir`,
@@ -466,6 +506,22 @@ pub struct RawFace {
     /// The face's surveyed deviation from the nominal rig file (informational, not used).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub survey: Option<survey::FaceSurvey>,
+    /// A ChArUco face's markers.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub charuco: Option<RawCharuco>,
+}
+
+/// `[faces.charuco]` as written.
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct RawCharuco {
+    pub dictionary: Option<String>,
+    pub marker_mm: Option<f64>,
+    /// The first of consecutive ids (default 0), unless `ids` lists them.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub first_id: Option<i64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ids: Option<Vec<i64>>,
 }
 
 impl Rig {
@@ -728,6 +784,34 @@ impl RawRig {
                 }
                 open_sides.push(side);
             }
+            let charuco = match rf.charuco {
+                None => None,
+                Some(rc) => {
+                    let ch = validate_charuco(path, k, rc, cols, rows, square_mm)?;
+                    let natural = charuco::first_square(rows);
+                    if let Some(fs) = rf.first_square
+                        && fs != natural
+                    {
+                        return Err(invalid(
+                            &key("first_square"),
+                            "none on a ChArUco face (OpenCV's layout fixes the colours), or the colour it fixes",
+                            format!("{fs:?} (OpenCV's layout makes it {natural:?})"),
+                        ));
+                    }
+                    if !open_sides.is_empty() {
+                        return Err(invalid(
+                            &key("open_sides"),
+                            "none on a ChArUco face (its markers name every square)",
+                            format!("{} sides", open_sides.len()),
+                        ));
+                    }
+                    Some(ch)
+                }
+            };
+            let first_square = match &charuco {
+                Some(_) => charuco::first_square(rows),
+                None => rf.first_square.unwrap_or(SquareColour::Black),
+            };
             // Exact Gram–Schmidt within the tolerance.
             let col_dir = col_dir.normalize();
             let row_dir = (row_dir - col_dir * col_dir.dot(&row_dir)).normalize();
@@ -740,8 +824,9 @@ impl RawRig {
                 origin,
                 col_dir,
                 row_dir,
-                first_square: rf.first_square.unwrap_or(SquareColour::Black),
+                first_square,
                 open_sides,
+                charuco,
             });
         }
         for a in 0..faces.len() {
@@ -756,6 +841,19 @@ impl RawRig {
                 }
             }
         }
+        let mut seen: std::collections::HashMap<(usize, u32), &str> = Default::default();
+        for (k, f) in faces.iter().enumerate() {
+            let Some(ch) = &f.charuco else { continue };
+            for &id in &ch.ids {
+                if let Some(other) = seen.insert((ch.dictionary.bits, id), &f.name) {
+                    return Err(invalid(
+                        &format!("faces[{k}].charuco.ids"),
+                        "marker ids used once in the rig (per marker size)",
+                        format!("{id} (also on face '{other}')"),
+                    ));
+                }
+            }
+        }
         let up = match self.up {
             Some(v) => {
                 let u = finite_vec("up", v)?;
@@ -766,7 +864,7 @@ impl RawRig {
         };
         let mut warnings = Vec::new();
         for f in &faces {
-            if f.is_point_symmetric() {
+            if f.is_point_symmetric() && f.charuco.is_none() {
                 warnings.push(RigWarning::SymmetricGrid {
                     face: f.name.clone(),
                     cols: f.cols,
@@ -778,7 +876,10 @@ impl RawRig {
             for b in a + 1..faces.len() {
                 let (fa, fb) = (&faces[a], &faces[b]);
                 // A face with open sides is never told apart by its size.
-                let sized = fa.open_sides.is_empty() && fb.open_sides.is_empty();
+                let sized = fa.open_sides.is_empty()
+                    && fb.open_sides.is_empty()
+                    && fa.charuco.is_none()
+                    && fb.charuco.is_none();
                 if sized
                     && ((fa.cols, fa.rows) == (fb.cols, fb.rows)
                         || (fa.cols, fa.rows) == (fb.rows, fb.cols))
@@ -800,6 +901,96 @@ impl RawRig {
             warnings,
         ))
     }
+}
+
+/// Validate `faces[index].charuco` of a face of `cols × rows` inner corners.
+fn validate_charuco(
+    path: &str,
+    index: usize,
+    rc: RawCharuco,
+    cols: usize,
+    rows: usize,
+    square_mm: f64,
+) -> Result<charuco::Charuco, RigError> {
+    let key = |field: &str| format!("faces[{index}].charuco.{field}");
+    let missing = |field: &str| RigError::Missing {
+        path: path.to_string(),
+        key: key(field),
+    };
+    let invalid = |field: &str, expected: &str, value: String| RigError::Invalid {
+        path: path.to_string(),
+        key: key(field),
+        expected: expected.to_string(),
+        value,
+    };
+    let name = rc.dictionary.ok_or_else(|| missing("dictionary"))?;
+    let dictionary = charuco::Dictionary::from_name(&name).ok_or_else(|| {
+        invalid(
+            "dictionary",
+            "one of OpenCV's DICT_4X4_50 … DICT_6X6_1000",
+            format!("{name:?}"),
+        )
+    })?;
+    let marker_mm = rc.marker_mm.ok_or_else(|| missing("marker_mm"))?;
+    if !(marker_mm > 0.0 && marker_mm < square_mm) {
+        return Err(invalid(
+            "marker_mm",
+            &format!("a length in mm above 0 and below the square ({square_mm})"),
+            marker_mm.to_string(),
+        ));
+    }
+    let n = charuco::marker_count(cols, rows);
+    let ids: Vec<i64> = match (rc.ids, rc.first_id) {
+        (Some(_), Some(_)) => {
+            return Err(invalid(
+                "first_id",
+                "either ids or first_id, not both",
+                "both".into(),
+            ));
+        }
+        (Some(ids), None) => ids,
+        (None, first) => {
+            let first = first.unwrap_or(0);
+            (first..first + n as i64).collect()
+        }
+    };
+    if ids.len() != n {
+        return Err(invalid(
+            "ids",
+            &format!("{n} ids, one per white square of a {cols}×{rows} corner board"),
+            format!("{} ids", ids.len()),
+        ));
+    }
+    let mut out = Vec::with_capacity(n);
+    for (i, &id) in ids.iter().enumerate() {
+        let ok = u32::try_from(id)
+            .ok()
+            .filter(|&v| (v as usize) < dictionary.count);
+        let Some(id) = ok else {
+            return Err(invalid(
+                &format!("ids[{i}]"),
+                &format!(
+                    "an id of {} (0 … {})",
+                    dictionary.name(),
+                    dictionary.count - 1
+                ),
+                id.to_string(),
+            ));
+        };
+        if out.contains(&id) {
+            return Err(invalid(
+                &format!("ids[{i}]"),
+                "ids used once",
+                format!("{id} twice"),
+            ));
+        }
+        out.push(id);
+    }
+    Ok(charuco::Charuco {
+        dictionary,
+        marker_mm,
+        ids: out,
+    })
 }
 
 /// `+z`, unless it is nearly along the mean face normal (a flat board lying in the xy plane), in

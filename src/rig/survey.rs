@@ -23,7 +23,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use super::{RawBody, RawFace, RawRig, Rig, RigError};
+use super::{RawBody, RawCharuco, RawFace, RawRig, Rig, RigError};
 
 /// `[survey]`: what the surveyed rig was measured from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -96,6 +96,12 @@ impl Rig {
                                 .collect()
                         }),
                         survey: None,
+                        charuco: f.charuco.as_ref().map(|c| RawCharuco {
+                            dictionary: Some(c.dictionary.name()),
+                            marker_mm: Some(c.marker_mm),
+                            first_id: None,
+                            ids: Some(c.ids.iter().map(|&i| i64::from(i)).collect()),
+                        }),
                     })
                     .collect(),
             ),

@@ -13,6 +13,7 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+use super::charuco::Charuco;
 use super::{Face, Rig, RigError, SquareColour};
 
 /// Height of the label strip below the board, mm.
@@ -105,6 +106,9 @@ pub fn face_svg(rig: &Rig, face: &Face) -> String {
         }
     }
     let _ = writeln!(out, "</g>");
+    if let Some(ch) = &face.charuco {
+        markers_svg(&mut out, face, ch, &lay);
+    }
     // Face name and square size in the board's own bottom margin, when there is room, so that the
     // information stays with the board after it is cut out.
     if face.margin_mm >= 3.0 {
@@ -153,6 +157,49 @@ pub fn face_svg(rig: &Rig, face: &Face) -> String {
     let _ = writeln!(out, "</g>");
     let _ = writeln!(out, "</svg>");
     out
+}
+
+/// A ChArUco face's markers: each black cell (border and 0 bits) of each white square's marker.
+fn markers_svg(out: &mut String, face: &Face, ch: &Charuco, lay: &PageLayout) {
+    let s = face.square_mm;
+    let n = ch.dictionary.bits;
+    let cell = ch.marker_mm / (n + 2) as f64;
+    let d = (s - ch.marker_mm) / 2.0;
+    let _ = writeln!(
+        out,
+        r#"<g id="markers" fill="black" shape-rendering="crispEdges" data-dictionary="{}">"#,
+        ch.dictionary.name()
+    );
+    for y in 0..=face.rows {
+        for x in 0..=face.cols {
+            let Some(id) = Charuco::marker_index(face.cols, x, y).and_then(|k| ch.ids.get(k))
+            else {
+                continue;
+            };
+            let Some(code) = ch.dictionary.code(*id) else {
+                continue;
+            };
+            let _ = writeln!(out, r#"<g data-id="{id}">"#);
+            for r in 0..n + 2 {
+                for c in 0..n + 2 {
+                    let border = r == 0 || c == 0 || r == n + 1 || c == n + 1;
+                    if !border && ch.dictionary.bit(code, r - 1, c - 1) {
+                        continue;
+                    }
+                    // OpenCV board coordinates (y down from the top) of the cell's top-left corner.
+                    let x_cv = x as f64 * s + d + c as f64 * cell;
+                    let y_cv = y as f64 * s + d + r as f64 * cell;
+                    let (sx, sy) = lay.to_svg(face, x_cv - s, face.rows as f64 * s - y_cv);
+                    let _ = writeln!(
+                        out,
+                        r#"<rect x="{sx:.4}" y="{sy:.4}" width="{cell:.4}" height="{cell:.4}"/>"#
+                    );
+                }
+            }
+            let _ = writeln!(out, "</g>");
+        }
+    }
+    let _ = writeln!(out, "</g>");
 }
 
 /// File name used for a face's SVG: the face name made file-safe.

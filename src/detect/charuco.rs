@@ -1,0 +1,724 @@
+//! ChArUco faces: ArUco markers found and decoded, each ChArUco corner labelled from the two markers
+//! beside it and fitted by the checkerboard corners' sub-pixel refinement ([`super::refine`]).
+//!
+//! ## Method
+//! 1. **Dark regions.** A pixel is dark when it is [`THRESHOLD_OFFSET`] grey levels below the mean of
+//!    the `w × w` box around it (`w` = [`box_size`], from an integral image), as OpenCV's adaptive
+//!    threshold. Dark pixels are grouped into 4-connected regions; a marker's black border is one
+//!    region, whatever its bits.
+//! 2. **Quadrilaterals.** Each region of plausible size is reduced to the convex hull of its pixels
+//!    (their outer pixel edges) and the hull to the largest quadrilateral on its vertices; a region
+//!    whose hull the quadrilateral does not fill to [`MIN_QUAD_FILL`] is no marker.
+//! 3. **Bits.** Through the homography of the quadrilateral, every cell of an `(n + 2)²` grid is
+//!    sampled (the mean of 3 × 3 bilinear samples in its middle half) for each marker size `n` the
+//!    rig uses; the cells split into dark and light by two-means. The border cells must be dark (at
+//!    most [`MAX_BORDER_ERROR_RATE`] of them light, OpenCV's default); the data bits, in each of the
+//!    four rotations, are matched against every marker of the dictionary by Hamming distance, and a
+//!    marker is decoded when the nearest is within the dictionary's `maxCorrectionBits` (the bits
+//!    corrected are reported per marker, [`Marker::corrected_bits`]). A marker whose id is not on any
+//!    face, or whose id is decoded twice in the frame, is dropped.
+//! 4. **Corners.** Every inner corner of a ChArUco board touches two white squares, each holding a
+//!    marker. A corner is labelled only when both are decoded and the homographies of both put the
+//!    corner at the same place (within [`MAX_PREDICTION_DISAGREEMENT`] of a square): one wrongly
+//!    decoded marker cannot label a corner. (OpenCV's `CharucoDetector` also needs two markers by
+//!    default, `minMarkers = 2`.) The corner is then fitted with [`refine::refine_near_border`]
+//!    with the image steps of the two markers' homographies, scaled so that the fit's window stays in
+//!    the white gap between the corner and the markers (markers fill the middle of their squares, the
+//!    window must not reach them); a corner whose fit fails is not labelled.
+//!
+//! Everything runs on the full-resolution frame; no part of a face needs any other part to be seen.
+//!
+//! Written here because no well-kept crate detects OpenCV's ArUco markers (see [`crate::rig::charuco`]).
+
+use image::GrayImage;
+use nalgebra::{Matrix3, SMatrix, SVector, Vector2, Vector3};
+
+use super::face::{FaceDetection, LabelledCorner, Rejection};
+use super::refine;
+use crate::rig::charuco::{Charuco, Dictionary, rotate_code};
+use crate::rig::{Face, Rig};
+
+/// How far below the local mean a pixel must be to be dark (grey levels; OpenCV's default 7).
+pub const THRESHOLD_OFFSET: i32 = 7;
+/// The threshold's box is this fraction of the frame's shorter side (at least [`MIN_BOX`] px).
+pub const BOX_FRACTION: f64 = 0.03;
+/// Smallest box of the adaptive threshold, px.
+pub const MIN_BOX: usize = 15;
+/// Smallest side of a marker's quadrilateral, px per cell of the `(n + 2)²` grid.
+pub const MIN_CELL_PX: f64 = 1.5;
+/// Smallest ratio of the quadrilateral's area to its region's hull.
+pub const MIN_QUAD_FILL: f64 = 0.8;
+/// Largest share of a marker's border cells read light (OpenCV's `maxErroneousBitsInBorderRate`).
+pub const MAX_BORDER_ERROR_RATE: f64 = 0.35;
+/// Smallest difference between the light and dark cells' mean (grey levels).
+pub const MIN_MARKER_CONTRAST: f64 = 10.0;
+/// Largest distance between the two markers' predictions of a corner, in squares.
+pub const MAX_PREDICTION_DISAGREEMENT: f64 = 0.1;
+
+/// A decoded marker.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Marker {
+    /// Marker size (data bits per side).
+    pub bits: usize,
+    pub id: u32,
+    /// Image corners in the marker's own order as printed: top left, top right, bottom right,
+    /// bottom left (OpenCV's order).
+    pub corners: [Vector2<f64>; 4],
+    /// Data bits read wrong and corrected.
+    pub corrected_bits: u32,
+    /// Light-minus-dark mean of its cells (grey levels).
+    pub contrast: f64,
+}
+
+/// What the ChArUco detector found in one frame.
+#[derive(Debug, Clone, Default)]
+pub struct CharucoDetection {
+    pub faces: Vec<FaceDetection>,
+    pub rejected: Vec<Rejection>,
+    /// Every marker decoded whose id is on a face of the rig.
+    pub markers: Vec<Marker>,
+}
+
+/// The threshold's box size for a frame (odd).
+pub fn box_size(width: u32, height: u32) -> usize {
+    let b = (BOX_FRACTION * f64::from(width.min(height))).round() as usize;
+    b.max(MIN_BOX) | 1
+}
+
+/// The dark pixels of the adaptive threshold, one byte per pixel (1 = dark).
+fn threshold(img: &GrayImage) -> Vec<u8> {
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let src = img.as_raw();
+    let mut integral = vec![0u32; (w + 1) * (h + 1)];
+    for y in 0..h {
+        let mut row = 0u32;
+        for x in 0..w {
+            row += u32::from(src[y * w + x]);
+            integral[(y + 1) * (w + 1) + x + 1] = integral[y * (w + 1) + x + 1] + row;
+        }
+    }
+    let r = box_size(img.width(), img.height()) / 2;
+    let mut dark = vec![0u8; w * h];
+    for y in 0..h {
+        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+        for x in 0..w {
+            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+            let sum = integral[y1 * (w + 1) + x1] + integral[y0 * (w + 1) + x0]
+                - integral[y0 * (w + 1) + x1]
+                - integral[y1 * (w + 1) + x0];
+            let n = ((y1 - y0) * (x1 - x0)) as i32;
+            let v = i32::from(src[y * w + x]);
+            dark[y * w + x] = u8::from(v * n < sum as i32 - THRESHOLD_OFFSET * n);
+        }
+    }
+    dark
+}
+
+/// One 4-connected dark region: per image row, its leftmost and rightmost pixel.
+struct Region {
+    rows: Vec<(u32, u32, u32)>,
+    pixels: usize,
+}
+
+/// The dark regions of plausible size for markers at least `min_side` px wide and at most
+/// `max_side` px.
+fn regions(dark: &mut [u8], w: usize, h: usize, min_side: f64, max_side: f64) -> Vec<Region> {
+    let mut out = Vec::new();
+    let mut stack: Vec<u32> = Vec::new();
+    // Per image row, the region's leftmost and rightmost pixel (reset after each region).
+    let mut row_min = vec![u32::MAX; h];
+    let mut row_max = vec![0u32; h];
+    for start in 0..w * h {
+        if dark[start] != 1 {
+            continue;
+        }
+        dark[start] = 2;
+        stack.push(start as u32);
+        let mut pixels = 0usize;
+        let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0usize, usize::MAX, 0usize);
+        while let Some(p) = stack.pop() {
+            let p = p as usize;
+            let (x, y) = (p % w, p / w);
+            pixels += 1;
+            x0 = x0.min(x);
+            x1 = x1.max(x);
+            y0 = y0.min(y);
+            y1 = y1.max(y);
+            row_min[y] = row_min[y].min(x as u32);
+            row_max[y] = row_max[y].max(x as u32);
+            if x > 0 && dark[p - 1] == 1 {
+                dark[p - 1] = 2;
+                stack.push((p - 1) as u32);
+            }
+            if x + 1 < w && dark[p + 1] == 1 {
+                dark[p + 1] = 2;
+                stack.push((p + 1) as u32);
+            }
+            if y > 0 && dark[p - w] == 1 {
+                dark[p - w] = 2;
+                stack.push((p - w) as u32);
+            }
+            if y + 1 < h && dark[p + w] == 1 {
+                dark[p + w] = 2;
+                stack.push((p + w) as u32);
+            }
+        }
+        let rows: Vec<(u32, u32, u32)> = (y0..=y1)
+            .filter(|&y| row_min[y] != u32::MAX)
+            .map(|y| (y as u32, row_min[y], row_max[y]))
+            .collect();
+        row_min[y0..=y1].fill(u32::MAX);
+        row_max[y0..=y1].fill(0);
+        let (bw, bh) = ((x1 - x0 + 1) as f64, (y1 - y0 + 1) as f64);
+        if bw.max(bh) < min_side || bw.max(bh) > max_side || (pixels as f64) < min_side * 2.0 {
+            continue;
+        }
+        // Touching the frame border: a marker cut by the frame cannot be read.
+        if x0 == 0 || y0 == 0 || x1 + 1 == w || y1 + 1 == h {
+            continue;
+        }
+        out.push(Region { rows, pixels });
+    }
+    out
+}
+
+fn cross(o: Vector2<f64>, a: Vector2<f64>, b: Vector2<f64>) -> f64 {
+    (a.x - o.x) * (b.y - o.y) - (a.y - o.y) * (b.x - o.x)
+}
+
+/// Convex hull (monotone chain), counter-clockwise in a y-up frame — clockwise as seen in the image.
+fn hull(mut pts: Vec<Vector2<f64>>) -> Vec<Vector2<f64>> {
+    pts.sort_by(|a, b| a.x.total_cmp(&b.x).then(a.y.total_cmp(&b.y)));
+    pts.dedup();
+    if pts.len() < 3 {
+        return pts;
+    }
+    let mut lower: Vec<Vector2<f64>> = Vec::new();
+    for &p in &pts {
+        while lower.len() >= 2 && cross(lower[lower.len() - 2], lower[lower.len() - 1], p) <= 0.0 {
+            lower.pop();
+        }
+        lower.push(p);
+    }
+    let mut upper: Vec<Vector2<f64>> = Vec::new();
+    for &p in pts.iter().rev() {
+        while upper.len() >= 2 && cross(upper[upper.len() - 2], upper[upper.len() - 1], p) <= 0.0 {
+            upper.pop();
+        }
+        upper.push(p);
+    }
+    lower.pop();
+    upper.pop();
+    lower.extend(upper);
+    lower
+}
+
+/// Drop the vertices of a closed polygon closer than `eps` px to the line through their
+/// neighbours, the least significant first, until every vertex stands out (the hull of a blurred
+/// quadrilateral keeps its four corners and a few vertices of each rounded one).
+fn simplify(mut p: Vec<Vector2<f64>>, eps: f64) -> Vec<Vector2<f64>> {
+    while p.len() > 4 {
+        let n = p.len();
+        let (mut best, mut at) = (f64::INFINITY, 0);
+        for i in 0..n {
+            let (a, b, c) = (p[(i + n - 1) % n], p[i], p[(i + 1) % n]);
+            let len = (c - a).norm();
+            let d = if len > 0.0 {
+                cross(a, c, b).abs() / len
+            } else {
+                0.0
+            };
+            if d < best {
+                (best, at) = (d, i);
+            }
+        }
+        if best >= eps {
+            break;
+        }
+        p.remove(at);
+    }
+    p
+}
+
+fn polygon_area(p: &[Vector2<f64>]) -> f64 {
+    let n = p.len();
+    (0..n)
+        .map(|i| p[i].x * p[(i + 1) % n].y - p[(i + 1) % n].x * p[i].y)
+        .sum::<f64>()
+        / 2.0
+}
+
+/// The largest-area quadrilateral on the hull's vertices, in hull order.
+fn largest_quad(h: &[Vector2<f64>]) -> Option<[Vector2<f64>; 4]> {
+    let n = h.len();
+    if n < 4 {
+        return None;
+    }
+    let tri = |a: usize, b: usize, c: usize| cross(h[a], h[b], h[c]).abs() / 2.0;
+    let mut best = (0.0, [0usize; 4]);
+    // Diagonal (i, k); the best vertex on each side, found by scanning (hulls have few vertices).
+    for i in 0..n {
+        for k in i + 2..n {
+            let (mut b1, mut j1) = (0.0, usize::MAX);
+            for j in i + 1..k {
+                let t = tri(i, j, k);
+                if t > b1 {
+                    (b1, j1) = (t, j);
+                }
+            }
+            let (mut b2, mut l2) = (0.0, usize::MAX);
+            for l in (k + 1..n).chain(0..i) {
+                let t = tri(k, l, i);
+                if t > b2 {
+                    (b2, l2) = (t, l);
+                }
+            }
+            if j1 != usize::MAX && l2 != usize::MAX && b1 + b2 > best.0 {
+                best = (b1 + b2, [i, j1, k, l2]);
+            }
+        }
+    }
+    if best.0 <= 0.0 {
+        return None;
+    }
+    let mut idx = best.1;
+    idx.sort_unstable();
+    Some(idx.map(|i| h[i]))
+}
+
+/// Homography taking `from[i]` to `to[i]` (four points, DLT with h₃₃ = 1).
+pub fn homography(from: &[Vector2<f64>; 4], to: &[Vector2<f64>; 4]) -> Option<Matrix3<f64>> {
+    let mut a = SMatrix::<f64, 8, 8>::zeros();
+    let mut rhs = SVector::<f64, 8>::zeros();
+    for k in 0..4 {
+        let (x, y) = (from[k].x, from[k].y);
+        let (u, v) = (to[k].x, to[k].y);
+        a.set_row(
+            2 * k,
+            &SMatrix::<f64, 1, 8>::from_row_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]),
+        );
+        a.set_row(
+            2 * k + 1,
+            &SMatrix::<f64, 1, 8>::from_row_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]),
+        );
+        rhs[2 * k] = u;
+        rhs[2 * k + 1] = v;
+    }
+    let h = a.lu().solve(&rhs)?;
+    Some(Matrix3::new(
+        h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0,
+    ))
+}
+
+/// Apply a homography; `None` behind the plane's horizon.
+pub fn apply(h: &Matrix3<f64>, p: Vector2<f64>) -> Option<Vector2<f64>> {
+    let q = h * Vector3::new(p.x, p.y, 1.0);
+    (q.z.abs() > 1e-12).then(|| Vector2::new(q.x / q.z, q.y / q.z))
+}
+
+fn bilinear(img: &GrayImage, p: Vector2<f64>) -> Option<f64> {
+    let (w, h) = (img.width() as f64, img.height() as f64);
+    if !(p.x >= 0.0 && p.y >= 0.0 && p.x <= w - 1.0 && p.y <= h - 1.0) {
+        return None;
+    }
+    let (x0, y0) = (p.x.floor(), p.y.floor());
+    let (fx, fy) = (p.x - x0, p.y - y0);
+    let (x0, y0) = (x0 as u32, y0 as u32);
+    let x1 = (x0 + 1).min(img.width() - 1);
+    let y1 = (y0 + 1).min(img.height() - 1);
+    let g = |x: u32, y: u32| f64::from(img.get_pixel(x, y).0[0]);
+    Some(
+        g(x0, y0) * (1.0 - fx) * (1.0 - fy)
+            + g(x1, y0) * fx * (1.0 - fy)
+            + g(x0, y1) * (1.0 - fx) * fy
+            + g(x1, y1) * fx * fy,
+    )
+}
+
+/// Read and decode a quadrilateral (image corners clockwise as seen) as a marker of `dict`.
+fn decode(img: &GrayImage, quad: &[Vector2<f64>; 4], dict: Dictionary) -> Option<Marker> {
+    let n = dict.bits;
+    let cells = n + 2;
+    let unit = [
+        Vector2::new(0.0, 0.0),
+        Vector2::new(1.0, 0.0),
+        Vector2::new(1.0, 1.0),
+        Vector2::new(0.0, 1.0),
+    ];
+    let h = homography(&unit, quad)?;
+    let mut values = vec![0.0; cells * cells];
+    for r in 0..cells {
+        for c in 0..cells {
+            let mut sum = 0.0;
+            for dy in [-0.25, 0.0, 0.25] {
+                for dx in [-0.25, 0.0, 0.25] {
+                    let u = (c as f64 + 0.5 + dx) / cells as f64;
+                    let v = (r as f64 + 0.5 + dy) / cells as f64;
+                    sum += bilinear(img, apply(&h, Vector2::new(u, v))?)?;
+                }
+            }
+            values[r * cells + c] = sum / 9.0;
+        }
+    }
+    // Two-means split of the cells.
+    let (lo, hi) = values
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    let mut t = (lo + hi) / 2.0;
+    let (mut m_dark, mut m_light) = (lo, hi);
+    for _ in 0..10 {
+        let (mut sd, mut nd, mut sl, mut nl) = (0.0, 0, 0.0, 0);
+        for &v in &values {
+            if v < t {
+                sd += v;
+                nd += 1;
+            } else {
+                sl += v;
+                nl += 1;
+            }
+        }
+        if nd == 0 || nl == 0 {
+            return None;
+        }
+        (m_dark, m_light) = (sd / nd as f64, sl / nl as f64);
+        t = (m_dark + m_light) / 2.0;
+    }
+    if m_light - m_dark < MIN_MARKER_CONTRAST {
+        return None;
+    }
+    let light = |r: usize, c: usize| values[r * cells + c] >= t;
+    let border_light = (0..cells)
+        .flat_map(|r| (0..cells).map(move |c| (r, c)))
+        .filter(|&(r, c)| r == 0 || c == 0 || r == cells - 1 || c == cells - 1)
+        .filter(|&(r, c)| light(r, c))
+        .count();
+    if border_light as f64 > MAX_BORDER_ERROR_RATE * (4 * (cells - 1)) as f64 {
+        return None;
+    }
+    let mut read = 0u64;
+    for r in 0..n {
+        for c in 0..n {
+            read = (read << 1) | u64::from(light(r + 1, c + 1));
+        }
+    }
+    let max = dict.max_correction_bits();
+    let mut best: Option<(u32, u32, usize)> = None; // (distance, id, rotation)
+    for (id, &code) in dict.codes().iter().enumerate() {
+        let mut rotated = code;
+        for rot in 0..4 {
+            let d = (rotated ^ read).count_ones();
+            if d <= max && best.is_none_or(|b| d < b.0) {
+                best = Some((d, id as u32, rot));
+            }
+            rotated = rotate_code(rotated, n);
+        }
+    }
+    let (distance, id, rot) = best?;
+    let cell_px = (0..4)
+        .map(|k| (quad[(k + 1) % 4] - quad[k]).norm())
+        .fold(f64::INFINITY, f64::min)
+        / cells as f64;
+    let quad = refine_quad(img, quad, (m_dark + m_light) / 2.0, cell_px).unwrap_or(*quad);
+    Some(Marker {
+        bits: n,
+        id,
+        corners: [0, 1, 2, 3].map(|k| quad[(k + rot) % 4]),
+        corrected_bits: distance,
+        contrast: m_light - m_dark,
+    })
+}
+
+/// The marker's outline to sub-pixel precision: along each side, where the grey level crosses
+/// `level` (between the marker's dark and light cells) on lines across the side, searched within
+/// 0.8 of a cell of the thresholded outline; a straight line fitted to those points per side; the
+/// corners where neighbouring lines meet. `None` (keep the outline as found) when a side has too
+/// few crossings.
+fn refine_quad(
+    img: &GrayImage,
+    quad: &[Vector2<f64>; 4],
+    level: f64,
+    cell_px: f64,
+) -> Option<[Vector2<f64>; 4]> {
+    let centre = quad.iter().sum::<Vector2<f64>>() / 4.0;
+    let reach = (0.8 * cell_px).clamp(1.0, 4.0);
+    let mut lines = [(Vector2::zeros(), Vector2::zeros()); 4]; // (point, unit direction)
+    for k in 0..4 {
+        let (p, q) = (quad[k], quad[(k + 1) % 4]);
+        let len = (q - p).norm();
+        let dir = (q - p) / len;
+        let mut normal = Vector2::new(-dir.y, dir.x);
+        if normal.dot(&((p + q) / 2.0 - centre)) < 0.0 {
+            normal = -normal;
+        }
+        let samples = (len as usize).clamp(4, 40);
+        let mut pts: Vec<Vector2<f64>> = Vec::with_capacity(samples);
+        for i in 0..samples {
+            let t = 0.15 + 0.7 * (i as f64 + 0.5) / samples as f64;
+            let base = p + (q - p) * t;
+            // From outside (light) inward: the first crossing below the level.
+            let step = 0.25;
+            let mut prev: Option<(f64, f64)> = None;
+            let mut o = reach;
+            while o >= -reach {
+                let Some(v) = bilinear(img, base + normal * o) else {
+                    break;
+                };
+                if let Some((po, pv)) = prev
+                    && pv >= level
+                    && v < level
+                {
+                    let f = (pv - level) / (pv - v);
+                    pts.push(base + normal * (po - f * step));
+                    break;
+                }
+                prev = Some((o, v));
+                o -= step;
+            }
+        }
+        if pts.len() < 3 {
+            return None;
+        }
+        // Total least squares line through the points.
+        let m = pts.iter().sum::<Vector2<f64>>() / pts.len() as f64;
+        let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+        for q in &pts {
+            let d = q - m;
+            sxx += d.x * d.x;
+            sxy += d.x * d.y;
+            syy += d.y * d.y;
+        }
+        let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+        let mut u = Vector2::new(angle.cos(), angle.sin());
+        if u.dot(&dir) < 0.0 {
+            u = -u;
+        }
+        if u.dot(&dir) < 0.9 {
+            return None;
+        }
+        lines[k] = (m, u);
+    }
+    let mut out = [Vector2::zeros(); 4];
+    for k in 0..4 {
+        // Corner k is where side k − 1 (ending at it) meets side k (starting from it).
+        let (p1, u1) = lines[(k + 3) % 4];
+        let (p2, u2) = lines[k];
+        let det = u1.x * (-u2.y) - u1.y * (-u2.x);
+        if det.abs() < 1e-6 {
+            return None;
+        }
+        let r = p2 - p1;
+        let t = (r.x * (-u2.y) - r.y * (-u2.x)) / det;
+        out[k] = p1 + u1 * t;
+        if (out[k] - quad[k]).norm() > 2.0 * reach {
+            return None;
+        }
+    }
+    Some(out)
+}
+
+/// Find and decode the markers of every size in `dicts` (one dictionary per marker size).
+pub fn find_markers(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Marker> {
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let Some(min_bits) = dicts.iter().map(|d| d.bits).min() else {
+        return Vec::new();
+    };
+    let min_side = (min_bits + 2) as f64 * MIN_CELL_PX;
+    let max_side = w.min(h) as f64 / 2.0;
+    let mut dark = threshold(img);
+    let mut out = Vec::new();
+    for region in regions(&mut dark, w, h, min_side, max_side) {
+        let mut pts = Vec::with_capacity(region.rows.len() * 4);
+        for &(y, x0, x1) in &region.rows {
+            let (y, x0, x1) = (f64::from(y), f64::from(x0), f64::from(x1));
+            pts.extend([
+                Vector2::new(x0 - 0.5, y - 0.5),
+                Vector2::new(x0 - 0.5, y + 0.5),
+                Vector2::new(x1 + 0.5, y - 0.5),
+                Vector2::new(x1 + 0.5, y + 0.5),
+            ]);
+        }
+        let hl = simplify(hull(pts), 0.7);
+        let Some(quad) = largest_quad(&hl) else {
+            continue;
+        };
+        let (ha, qa) = (polygon_area(&hl).abs(), polygon_area(&quad).abs());
+        if qa < MIN_QUAD_FILL * ha || (region.pixels as f64) < 0.3 * qa {
+            continue;
+        }
+        let sides = (0..4).map(|k| (quad[(k + 1) % 4] - quad[k]).norm());
+        if sides.fold(f64::INFINITY, f64::min) < min_side {
+            continue;
+        }
+        // Hull order is counter-clockwise in a y-up frame: clockwise as seen in the image (y down).
+        // Start from the top-left-most corner (any start works; decoding finds the rotation).
+        for &dict in dicts {
+            if let Some(m) = decode(img, &quad, dict) {
+                out.push(m);
+                break;
+            }
+        }
+    }
+    out
+}
+
+/// OpenCV board coordinates (mm, x right, y down from the board's top-left square corner) of a
+/// marker's four corners (top left, top right, bottom right, bottom left).
+fn marker_board_corners(face: &Face, ch: &Charuco, sq: (usize, usize)) -> [Vector2<f64>; 4] {
+    let s = face.square_mm;
+    let d = (s - ch.marker_mm) / 2.0;
+    let (x, y) = (sq.0 as f64 * s + d, sq.1 as f64 * s + d);
+    let m = ch.marker_mm;
+    [
+        Vector2::new(x, y),
+        Vector2::new(x + m, y),
+        Vector2::new(x + m, y + m),
+        Vector2::new(x, y + m),
+    ]
+}
+
+/// Detect the ChArUco faces of `rig` in a frame.
+pub fn detect(img: &GrayImage, rig: &Rig) -> CharucoDetection {
+    let mut dicts: Vec<Dictionary> = Vec::new();
+    for f in &rig.faces {
+        if let Some(ch) = &f.charuco
+            && !dicts.iter().any(|d| d.bits == ch.dictionary.bits)
+        {
+            dicts.push(ch.dictionary);
+        }
+    }
+    // One dictionary per marker size: the largest of that size in the rig (the smaller ones are
+    // its first ids; a face's ids are checked against its own dictionary at validation).
+    for d in &mut dicts {
+        for f in &rig.faces {
+            if let Some(ch) = &f.charuco
+                && ch.dictionary.bits == d.bits
+                && ch.dictionary.count > d.count
+            {
+                *d = ch.dictionary;
+            }
+        }
+    }
+    let mut out = CharucoDetection::default();
+    if dicts.is_empty() {
+        return out;
+    }
+    let found = find_markers(img, &dicts);
+    // Ids on the rig: (bits, id) → (face, marker index); ids decoded twice are dropped.
+    let mut markers: Vec<Marker> = Vec::new();
+    let mut twice: Vec<(usize, u32)> = Vec::new();
+    for m in found {
+        if markers.iter().any(|o| o.bits == m.bits && o.id == m.id) {
+            twice.push((m.bits, m.id));
+        }
+        markers.push(m);
+    }
+    markers.retain(|m| !twice.contains(&(m.bits, m.id)));
+    for &(bits, id) in &twice {
+        out.rejected.push(Rejection::frame(format!(
+            "marker {id} ({bits}×{bits}) decoded twice in the frame; neither used"
+        )));
+    }
+    markers.retain(|m| {
+        rig.faces.iter().any(|f| {
+            f.charuco
+                .as_ref()
+                .is_some_and(|c| c.dictionary.bits == m.bits && c.ids.contains(&m.id))
+        })
+    });
+    for (fi, face) in rig.faces.iter().enumerate() {
+        let Some(ch) = &face.charuco else { continue };
+        if let Some(fd) = detect_face(img, face, fi, ch, &markers) {
+            out.faces.push(fd);
+        }
+    }
+    out.markers = markers;
+    out
+}
+
+fn detect_face(
+    img: &GrayImage,
+    face: &Face,
+    fi: usize,
+    ch: &Charuco,
+    markers: &[Marker],
+) -> Option<FaceDetection> {
+    let (sx, sy) = (face.cols + 1, face.rows + 1);
+    // Per OpenCV square: the decoded marker's homography from board mm to image px.
+    let mut homs: Vec<Option<Matrix3<f64>>> = vec![None; sx * sy];
+    let mut contrast = Vec::new();
+    for y in 0..sy {
+        for x in 0..sx {
+            let Some(id) = Charuco::marker_index(face.cols, x, y).and_then(|k| ch.ids.get(k))
+            else {
+                continue;
+            };
+            let Some(m) = markers
+                .iter()
+                .find(|m| m.bits == ch.dictionary.bits && m.id == *id)
+            else {
+                continue;
+            };
+            homs[y * sx + x] = homography(&marker_board_corners(face, ch, (x, y)), &m.corners);
+            contrast.push(m.contrast);
+        }
+    }
+    let s = face.square_mm;
+    // The fit's window (half-extent refine::WINDOW of the steps given) must stay within the white
+    // gap around the corner: scale the steps to that gap, less a tenth of a square for the blur.
+    let gap = ((s - ch.marker_mm) / 2.0 / s - 0.02).max(0.02);
+    let scale = gap / refine::WINDOW;
+    let mut corners = Vec::new();
+    for cy in 0..face.rows {
+        for cx in 0..face.cols {
+            let p = Vector2::new((cx + 1) as f64 * s, (cy + 1) as f64 * s);
+            let mut preds: Vec<(Vector2<f64>, Vector2<f64>, Vector2<f64>)> = Vec::new();
+            for (x, y) in [(cx, cy), (cx + 1, cy), (cx, cy + 1), (cx + 1, cy + 1)] {
+                if let Some(h) = homs[y * sx + x] {
+                    let (Some(c), Some(ax), Some(ay)) = (
+                        apply(&h, p),
+                        apply(&h, p + Vector2::new(s, 0.0)),
+                        apply(&h, p + Vector2::new(0.0, s)),
+                    ) else {
+                        continue;
+                    };
+                    preds.push((c, ax - c, ay - c));
+                }
+            }
+            if preds.len() < 2 {
+                continue;
+            }
+            let (c0, c1) = (preds[0].0, preds[1].0);
+            let a = (preds[0].1 + preds[1].1) / 2.0;
+            // cubecal's rows run up the face: its row step is OpenCV's −y.
+            let b = -(preds[0].2 + preds[1].2) / 2.0;
+            let square_px = a.norm().min(b.norm());
+            if (c0 - c1).norm() > MAX_PREDICTION_DISAGREEMENT * square_px {
+                continue;
+            }
+            let p0 = (c0 + c1) / 2.0;
+            let Ok(fit) = refine::refine_near_border(img, p0, a * scale, b * scale) else {
+                continue;
+            };
+            let (row, col) = (face.rows - 1 - cy, cx);
+            corners.push(LabelledCorner {
+                row,
+                col,
+                xyz: face.corner_xyz(row, col),
+                uv: fit.uv,
+                sigma_px: fit.sigma_px,
+            });
+        }
+    }
+    if corners.is_empty() {
+        return None;
+    }
+    corners.sort_by_key(|c| (c.row, c.col));
+    Some(FaceDetection {
+        face: fi,
+        corners,
+        colour_contrast: contrast.iter().sum::<f64>() / contrast.len().max(1) as f64,
+        ambiguous_pose: None,
+    })
+}

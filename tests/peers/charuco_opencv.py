@@ -1,0 +1,80 @@
+#!/usr/bin/env python3
+"""OpenCV's ChArUco detector on images, for cubecal's tests (tests/detect_charuco.rs).
+
+Usage: charuco_opencv.py BOARDS.json IMAGE...
+
+BOARDS.json: {"boards": [{"name": ..., "dictionary": "DICT_5X5_250", "squares": [SX, SY],
+"square": S, "marker": M, "ids": [...]}, ...]} (one per ChArUco face, OpenCV's layout).
+Prints one JSON object: {"cv2": version, "images": [{"path": ..., "markers": [[id, [[x, y] x4]], ...],
+"boards": {name: [[corner_id, x, y], ...]}}]}. Each board is interpolated from the markers with its
+own ids (OpenCV's default: two markers per corner), corners refined by cornerSubPix as
+CharucoDetector does. Works with OpenCV 4.6 (Debian bookworm: detectMarkers +
+interpolateCornersCharuco) and >= 4.7 (CharucoDetector).
+"""
+import json
+import sys
+
+import cv2
+import numpy as np
+
+aruco = cv2.aruco
+NEW_API = hasattr(aruco, "CharucoDetector")
+
+
+def make_board(b):
+    d = aruco.getPredefinedDictionary(getattr(aruco, b["dictionary"]))
+    ids = np.array(b["ids"], dtype=np.int32)
+    sx, sy = b["squares"]
+    if NEW_API:
+        board = aruco.CharucoBoard((sx, sy), b["square"], b["marker"], d, ids)
+    else:
+        board = aruco.CharucoBoard_create(sx, sy, b["square"], b["marker"], d)
+        board.ids = ids
+    return d, board
+
+
+def detect(gray, d, board):
+    if NEW_API:
+        det = aruco.CharucoDetector(board)
+        cc, cids, mc, mids = det.detectBoard(gray)
+    else:
+        mc, mids, _ = aruco.detectMarkers(gray, d, parameters=aruco.DetectorParameters_create())
+        cc, cids = None, None
+        if mids is not None and len(mids) > 0:
+            own = set(int(i) for i in np.array(board.ids).flatten())
+            keep = [k for k, i in enumerate(mids.flatten()) if int(i) in own]
+            if keep:
+                mc = [mc[k] for k in keep]
+                mids = mids[keep]
+                n, cc, cids = aruco.interpolateCornersCharuco(mc, mids, gray, board)
+    return cc, cids, mc, mids
+
+
+def main():
+    spec = json.load(open(sys.argv[1]))
+    boards = [(b["name"], *make_board(b)) for b in spec["boards"]]
+    out = {"cv2": cv2.__version__, "images": []}
+    for path in sys.argv[2:]:
+        gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+        if gray is None:
+            sys.exit(f"cannot read {path}")
+        rec = {"path": path, "markers": [], "boards": {}}
+        seen = set()
+        for name, d, board in boards:
+            cc, cids, mc, mids = detect(gray, d, board)
+            if mids is not None:
+                for c, i in zip(mc, mids.flatten()):
+                    if int(i) not in seen:
+                        seen.add(int(i))
+                        rec["markers"].append([int(i), c.reshape(4, 2).tolist()])
+            corners = []
+            if cids is not None and cc is not None:
+                for c, i in zip(cc.reshape(-1, 2), cids.flatten()):
+                    corners.append([int(i), float(c[0]), float(c[1])])
+            rec["boards"][name] = corners
+        out["images"].append(rec)
+    json.dump(out, sys.stdout)
+
+
+if __name__ == "__main__":
+    main()
