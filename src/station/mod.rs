@@ -38,6 +38,7 @@ pub mod event;
 pub mod hardware;
 pub mod judge;
 pub mod notify;
+pub mod plan;
 pub mod setup;
 pub mod sharpness;
 
@@ -225,10 +226,7 @@ pub fn run(
     {
         tracing::info!(error = %e, "stopped by a signal");
         let fpp = spec.config.camera.frames_per_pose.max(1) as usize;
-        let total = match &hw.poses {
-            Poses::Angles(a) => a.len(),
-            Poses::Frames { angles } => angles.len(),
-        };
+        let total = hw.poses.len();
         outcome = Err(StationError::Interrupted {
             pose: session.frame_count() / fpp,
             total,
@@ -287,14 +285,15 @@ fn capture_poses(
     let fpp = cfg.camera.frames_per_pose.max(1) as usize;
     let timeout = Duration::from_millis(cfg.camera.grab_timeout_ms);
     let info = hw.source.describe();
-    let total = match &hw.poses {
-        Poses::Angles(a) => a.len(),
-        Poses::Frames { angles } => angles.len(),
-    };
+    let total = hw.poses.len();
     let mut finder = CornerFinder::new().map_err(|e| StationError::Detect(e.to_string()))?;
     let mut coverage = Coverage::new(info.width, info.height, cfg.qa.coverage_grid);
     let mut out = Vec::with_capacity(total);
-    let moving = matches!(hw.poses, Poses::Angles(_));
+    let moving = matches!(hw.poses, Poses::Angles(_) | Poses::Stage { .. });
+    let mut planning = match &hw.poses {
+        Poses::Stage { sweep: None, .. } => Some(plan::Planning::new(spec, &info, &*hw.turntable)),
+        _ => None,
+    };
     // Homing gets twice the move timeout (hardware::open_turntable); past that, let the watchdog see.
     let move_limit =
         Duration::from_secs(cfg.turntable.move_timeout_s) * 2 + Duration::from_secs(10);
@@ -302,6 +301,9 @@ fn capture_poses(
         let home = notify::alive_during(sink, move_limit, || hw.turntable.home())?;
         if let Some(cell) = &hw.angle {
             cell.set(home.0);
+        }
+        if let Some(cell) = &hw.tilt {
+            cell.set(0.0);
         }
     }
     for index in 0..total {
@@ -312,10 +314,38 @@ fn capture_poses(
                 session: spec.run_dir.join(crate::run::SESSION),
             });
         }
-        let planned = match &hw.poses {
-            Poses::Angles(a) => Some(a[index]),
-            Poses::Frames { angles } => angles[index],
+        let (planned, tilt) = match &hw.poses {
+            Poses::Angles(a) => (Some(a[index]), None),
+            Poses::Stage { sweep: Some(s), .. } => {
+                (Some(s[index].rotation_deg), Some(s[index].tilt_deg))
+            }
+            Poses::Stage { sweep: None, .. } => {
+                let Some(choice) = planning.as_mut().and_then(|p| p.choose()) else {
+                    tracing::info!(
+                        poses = index,
+                        "no candidate pose left that shows the rig; ending the plan"
+                    );
+                    break;
+                };
+                sink.event(&Event::PoseChosen {
+                    index,
+                    rotation_deg: choice.pose.rotation_deg,
+                    tilt_deg: choice.pose.tilt_deg,
+                    corners: choice.corners,
+                    predicted: choice.sigma.clone(),
+                });
+                (Some(choice.pose.rotation_deg), Some(choice.pose.tilt_deg))
+            }
+            Poses::Frames { angles } => (angles[index], None),
         };
+        if let Some(t) = tilt {
+            sink.event(&Event::Tilting { index, tilt_deg: t });
+            let target = Degrees::checked(t)?;
+            let settled = notify::alive_during(sink, move_limit, || hw.turntable.tilt_to(target))?;
+            if let Some(cell) = &hw.tilt {
+                cell.set(settled.0);
+            }
+        }
         sink.event(&Event::PosePlanned {
             index,
             total,
@@ -357,9 +387,19 @@ fn capture_poses(
             sequence: last,
             flushed,
         });
-        let pose = examine(spec, &mut finder, &frames, name, grabbed, angle)?;
+        let mut pose = examine(spec, &mut finder, &frames, name, grabbed, angle)?;
+        pose.record.tilt_deg = tilt;
         match &pose.view {
             Some((view, _)) => {
+                if let (Some(p), Some(r), Some(t)) = (planning.as_mut(), planned, tilt) {
+                    p.accepted(
+                        plan::StagePose {
+                            rotation_deg: r,
+                            tilt_deg: t,
+                        },
+                        view,
+                    );
+                }
                 for p in &view.points {
                     coverage.add(&p.uv);
                 }
@@ -456,6 +496,7 @@ fn examine(
         name,
         frame: grabbed.frame_file,
         angle_deg: angle,
+        tilt_deg: None,
         accepted: false,
         reason: None,
         faces: 0,
@@ -612,9 +653,14 @@ fn sufficient(spec: &RunSpec<'_>, poses: &[PoseData], coverage: &Coverage, w: u3
     match crate::calib::solve(fit, [w, h], &opts) {
         Ok(cal) => {
             use crate::camera::idx;
+            // k3 must be determined too when the solve would otherwise fix it
+            let k3_ok = !cfg.solve.fix_undetermined_k3
+                || crate::calib::insignificant_at_border(&cal, idx::K3).is_none();
             cal.std_dev[idx::FX] / cal.camera.fx() <= cfg.plan.target_sigma_fx_rel
+                && cal.std_dev[idx::FY] / cal.camera.fy() <= cfg.plan.target_sigma_fx_rel
                 && cal.std_dev[idx::CX] <= cfg.plan.target_sigma_cx_px
                 && cal.std_dev[idx::CY] <= cfg.plan.target_sigma_cx_px
+                && k3_ok
         }
         Err(_) => false,
     }
@@ -699,6 +745,7 @@ fn solve_and_judge(
         points: fit.iter().map(|v| v.points.len()).sum(),
     });
     let mut opts = cfg.solve_options("station config")?;
+    let mut fixed = configured_fixes(&opts, image_size);
     let mut cal = match notify::alive_during(sink, SOLVE_LIMIT, || {
         crate::calib::solve(&fit, image_size, &opts)
     }) {
@@ -718,9 +765,18 @@ fn solve_and_judge(
             crate::calib::solve(&fit, image_size, &opts)
         }) {
             Ok(c) => {
-                notes.push(format!(
-                    "k3 fixed at 0: these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}); add poses with the rig near the image corners to estimate it"
-                ));
+                let why = format!(
+                    "these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}, within {}σ of 0, and 1σ moves the image border by {:.1} px); add poses with the rig near the image corners to estimate it",
+                    crate::calib::SIGNIFICANCE_SIGMAS,
+                    crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3)
+                        .map_or(0.0, |u| u.effect_px)
+                );
+                notes.push(format!("k3 fixed at 0: {why}"));
+                fixed.push(crate::run::FixedParameter {
+                    name: "k3".into(),
+                    value: 0.0,
+                    reason: why,
+                });
                 cal = c;
             }
             Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
@@ -790,10 +846,64 @@ fn solve_and_judge(
         held_failures: &held_failures,
         views: &result.views,
     });
+    result.verdict.fixed = fixed;
+    for u in crate::calib::undetermined_parameters(&cal) {
+        notes.push(format!(
+            "{} is not determined by these views ({:.4} ± {:.4}; 1σ moves the image border by {:.1} px)",
+            u.name, u.value, u.std_dev, u.effect_px
+        ));
+    }
     result.calibration = Some(CalibrationReport::from(&cal));
     result.held_out = held_out;
     result.notes = notes;
     Ok(result)
+}
+
+/// The parameters the solve options hold fixed, each with its value and the reason (the config).
+fn configured_fixes(
+    opts: &crate::calib::SolveOptions,
+    image_size: [u32; 2],
+) -> Vec<crate::run::FixedParameter> {
+    let mut out = Vec::new();
+    let mut push = |name: &str, value: f64, reason: &str| {
+        out.push(crate::run::FixedParameter {
+            name: name.into(),
+            value,
+            reason: reason.into(),
+        })
+    };
+    let f = &opts.fix;
+    if let Some(a) = f.aspect_ratio {
+        push(
+            "fx/fy",
+            a,
+            "configured (solve.fix = aspect): square pixels assumed",
+        );
+    }
+    if f.principal_point {
+        let c = crate::calib::init::image_centre(image_size);
+        let why = "configured (solve.fix = principal-point): held at the image centre";
+        push("cx", c.x, why);
+        push("cy", c.y, why);
+    }
+    if f.skew {
+        push(
+            "skew",
+            0.0,
+            "held at 0 by default: modern sensors have none",
+        );
+    }
+    if opts.model != crate::camera::DistortionModel::Pinhole {
+        if f.tangential {
+            let why = "configured (solve.fix = tangential)";
+            push("p1", 0.0, why);
+            push("p2", 0.0, why);
+        }
+        if f.k3 {
+            push("k3", 0.0, "configured (solve.fix = k3)");
+        }
+    }
+    out
 }
 
 /// Write the profile of a passing run: `RUN_DIR/profile.json` always, and into the per-device store
