@@ -186,7 +186,15 @@ fn open_axis(
         home_timeout: move_timeout * 2,
         ..GrblConfig::new(axis, t.degrees_per_unit)
     };
+    // The simulators' tilt is device 2 (a daisy-chained second device); hardware on its own port
+    // answers as device 1.
+    let zaber_device = if t.kind == TurntableKind::SimZaber {
+        device
+    } else {
+        1
+    };
     let zaber_config = ZaberConfig {
+        device: zaber_device,
         exchange_timeout,
         move_timeout,
         home_timeout: move_timeout * 2,
@@ -197,11 +205,20 @@ fn open_axis(
         TurntableKind::None => (Box::new(FixedRig), None, "none (fixed rig)".into()),
         TurntableKind::Manual => {
             let op = operator.ok_or_else(|| StationError::NoOperator)?;
-            (
-                Box::new(ManualTurntable::new(op, MANUAL_RESOLUTION)?),
-                None,
-                "manual (operator prompts)".into(),
-            )
+            let table = ManualTurntable::new(op, MANUAL_RESOLUTION)?;
+            if t.tilt {
+                let limits = (
+                    crate::turntable::Degrees(t.tilt_min_deg),
+                    crate::turntable::Degrees(t.tilt_max_deg),
+                );
+                (
+                    Box::new(table.with_tilt(limits)),
+                    None,
+                    "manual with a tilting cradle (operator prompts)".into(),
+                )
+            } else {
+                (Box::new(table), None, "manual (operator prompts)".into())
+            }
         }
         TurntableKind::Grbl => {
             let port = crate::turntable::serial::open_port(&port_path(), BAUD)?;

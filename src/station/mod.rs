@@ -314,10 +314,12 @@ fn capture_poses(
                 session: spec.run_dir.join(crate::run::SESSION),
             });
         }
-        let (planned, tilt) = match &hw.poses {
-            Poses::Angles(a) => (Some(a[index]), None),
+        let manual = hw.turntable.is_manual();
+        let has_tilt = matches!(hw.poses, Poses::Stage { .. });
+        let (planned, tilt, target) = match &hw.poses {
+            Poses::Angles(a) => (Some(a[index]), None, None),
             Poses::Stage { sweep: Some(s), .. } => {
-                (Some(s[index].rotation_deg), Some(s[index].tilt_deg))
+                (Some(s[index].rotation_deg), Some(s[index].tilt_deg), None)
             }
             Poses::Stage { sweep: None, .. } => {
                 let Some(choice) = planning.as_mut().and_then(|p| p.choose()) else {
@@ -334,39 +336,78 @@ fn capture_poses(
                     corners: choice.corners,
                     predicted: choice.sigma.clone(),
                 });
-                (Some(choice.pose.rotation_deg), Some(choice.pose.tilt_deg))
+                // Where the predicted corners land: their mean, and the empty cells they fill.
+                let n = choice.points.len().max(1) as f64;
+                let mean = choice.points.iter().sum::<nalgebra::Vector2<f64>>() / n;
+                let target = (
+                    coverage.region_of(&mean),
+                    coverage.newly_covered(&choice.points),
+                );
+                (
+                    Some(choice.pose.rotation_deg),
+                    Some(choice.pose.tilt_deg),
+                    Some(target),
+                )
             }
-            Poses::Frames { angles } => (angles[index], None),
+            Poses::Frames { angles } => (angles[index], None, None),
         };
-        if let Some(t) = tilt {
-            sink.event(&Event::Tilting { index, tilt_deg: t });
-            let target = Degrees::checked(t)?;
-            let settled = notify::alive_during(sink, move_limit, || hw.turntable.tilt_to(target))?;
-            if let Some(cell) = &hw.tilt {
-                cell.set(settled.0);
-            }
-        }
+        // A person moving the stage gets the whole pose in words (never empty for a manual pose).
+        let instruction = (manual && moving).then(|| {
+            plan::instruction(
+                plan::StagePose {
+                    rotation_deg: planned.unwrap_or(0.0),
+                    tilt_deg: tilt.unwrap_or(0.0),
+                },
+                has_tilt,
+                target,
+            )
+        });
         sink.event(&Event::PosePlanned {
             index,
             total,
             angle_deg: planned,
-            instruction: None,
+            instruction: instruction.clone(),
         });
         let mut angle = planned;
-        if moving && let Some(target) = planned {
-            sink.event(&Event::Moving {
-                index,
-                angle_deg: target,
-            });
-            let target = Degrees::checked(target)?;
-            let settled = notify::alive_during(sink, move_limit, || hw.turntable.move_to(target))?;
-            if let Some(cell) = &hw.angle {
-                cell.set(settled.0);
+        if moving && let Some(rotation) = planned {
+            let rotation = Degrees::checked(rotation)?;
+            let tilt_target = tilt.map(Degrees::checked).transpose()?;
+            let settled = match &instruction {
+                Some(text) => notify::alive_during(sink, move_limit, || {
+                    hw.turntable.by_hand(text, rotation, tilt_target)
+                })?,
+                None => {
+                    let settled_tilt = match tilt_target {
+                        Some(t) => {
+                            sink.event(&Event::Tilting {
+                                index,
+                                tilt_deg: t.0,
+                            });
+                            Some(notify::alive_during(sink, move_limit, || {
+                                hw.turntable.tilt_to(t)
+                            })?)
+                        }
+                        None => None,
+                    };
+                    sink.event(&Event::Moving {
+                        index,
+                        angle_deg: rotation.0,
+                    });
+                    let r =
+                        notify::alive_during(sink, move_limit, || hw.turntable.move_to(rotation))?;
+                    (r, settled_tilt)
+                }
+            };
+            if let (Some(cell), Some(t)) = (&hw.tilt, settled.1) {
+                cell.set(t.0);
             }
-            angle = Some(settled.0);
+            if let Some(cell) = &hw.angle {
+                cell.set(settled.0.0);
+            }
+            angle = Some(settled.0.0);
             sink.event(&Event::Settled {
                 index,
-                angle_deg: settled.0,
+                angle_deg: settled.0.0,
             });
             if cfg.turntable.settle_ms > 0 {
                 std::thread::sleep(Duration::from_millis(cfg.turntable.settle_ms));

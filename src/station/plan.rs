@@ -65,6 +65,9 @@ pub struct Choice {
     pub sigma: Vec<PredictedSigma>,
     /// The score after adding it (lower is better; see the module docs).
     pub score: f64,
+    /// The predicted corners' image positions.
+    #[serde(skip)]
+    pub points: Vec<nalgebra::Vector2<f64>>,
 }
 
 /// The planner: a rig on a stage, the candidate poses and the σ targets.
@@ -188,13 +191,18 @@ impl Planner {
         camera: &Camera,
         base: &Pose,
         pose: StagePose,
-    ) -> Option<(Vec<&'static str>, DMatrix<f64>, usize)> {
+    ) -> Option<(Vec<&'static str>, DMatrix<f64>, View)> {
         let p = self.cam_from_rig(base, pose);
         let view = self.predict_view(camera, &p)?;
-        let n = view.points.len();
-        let (names, mut infos) =
-            crate::calib::view_information(camera, &[p], &[view], self.model, &self.fix).ok()?;
-        Some((names, infos.pop()?, n))
+        let (names, mut infos) = crate::calib::view_information(
+            camera,
+            &[p],
+            std::slice::from_ref(&view),
+            self.model,
+            &self.fix,
+        )
+        .ok()?;
+        Some((names, infos.pop()?, view))
     }
 
     /// Target σ of each free parameter (∞ for those the verdict does not ask about), and the prior.
@@ -247,7 +255,7 @@ impl Planner {
             if taken.iter().chain(tried).any(|t| t == &cand) {
                 continue;
             }
-            let Some((n, s, corners)) = self.information(camera, base, cand) else {
+            let Some((n, s, view)) = self.information(camera, base, cand) else {
                 continue;
             };
             let (targets, prior) = self.targets(camera, &n);
@@ -277,9 +285,10 @@ impl Planner {
             if best.as_ref().is_none_or(|b| score < b.score) {
                 best = Some(Choice {
                     pose: cand,
-                    corners,
+                    corners: view.points.len(),
                     sigma,
                     score,
+                    points: view.points.iter().map(|p| p.uv).collect(),
                 });
             }
         }
@@ -393,5 +402,121 @@ impl Planning {
                 tracing::debug!(error = %e, "planning pose failed; keeping the base estimate")
             }
         }
+    }
+}
+
+/// A pose in plain words for the person moving a manual stage: the rotation mark, the tilt as a
+/// motion ("tilt the top of the cube toward the camera by about 20°") and, when the planner
+/// predicted where the rig will appear, that image region and how many empty coverage cells it
+/// fills. A positive tilt turns the top of the rig away from the camera ([`crate::render::stage_pose`]).
+pub fn instruction(pose: StagePose, tilt: bool, target: Option<(&str, usize)>) -> String {
+    // Marks are whole degrees (manual::MANUAL_RESOLUTION), rounded as the stage rounds them.
+    let mut s = format!(
+        "turn the turntable to the {:+.0}° mark",
+        pose.rotation_deg.round()
+    );
+    if tilt {
+        let t = pose.tilt_deg.round();
+        if t.abs() < 0.5 {
+            s.push_str(" and level the cradle (0°)");
+        } else {
+            s.push_str(&format!(
+                " and tilt the top of the cube {} by about {:.0}° (cradle mark {:+.0}°)",
+                if t < 0.0 {
+                    "toward the camera"
+                } else {
+                    "away from the camera"
+                },
+                t.abs(),
+                t
+            ));
+        }
+    }
+    if let Some((region, cells)) = target {
+        s.push_str(&format!(
+            ": this moves the rig toward the {region} of the image{}",
+            if cells > 0 {
+                format!(", where {cells} coverage cell(s) are still empty")
+            } else {
+                String::new()
+            }
+        ));
+    }
+    s.push_str("; hold it still, then confirm");
+    s
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grid_spans_both_axes_in_even_steps() {
+        let g = grid(60.0, Some((-30.0, 30.0)), 10.0);
+        assert_eq!(g.len(), 49);
+        assert_eq!(
+            g[0],
+            StagePose {
+                rotation_deg: -30.0,
+                tilt_deg: -30.0
+            }
+        );
+        assert_eq!(
+            g[48],
+            StagePose {
+                rotation_deg: 30.0,
+                tilt_deg: 30.0
+            }
+        );
+        assert_eq!(grid(60.0, None, 10.0).len(), 7);
+    }
+
+    #[test]
+    fn instructions_name_the_motion_and_the_image_region() {
+        let p = StagePose {
+            rotation_deg: 22.5,
+            tilt_deg: -20.0,
+        };
+        assert_eq!(
+            instruction(p, true, Some(("top-left", 3))),
+            "turn the turntable to the +23° mark and tilt the top of the cube toward the camera by about 20° (cradle mark -20°): this moves the rig toward the top-left of the image, where 3 coverage cell(s) are still empty; hold it still, then confirm"
+        );
+        assert_eq!(
+            instruction(p, false, None),
+            "turn the turntable to the +23° mark; hold it still, then confirm"
+        );
+    }
+
+    #[test]
+    fn a_stage_at_rest_is_the_one_axis_turntable() {
+        let rig = Rig::from_toml_str(
+            include_str!("../../fixtures/rigs/cube_outside.toml"),
+            "cube_outside.toml",
+        )
+        .unwrap()
+        .0;
+        let camera = nominal_camera([1280, 960]);
+        let base = crate::render::default_view(&rig, &camera);
+        let a = crate::render::stage_pose(&rig, &base, &StageGeometry::default(), 25.0, 0.0);
+        let b = crate::render::turned(&rig, &base, 25.0);
+        assert!((a.rotation.matrix() - b.rotation.matrix()).norm() < 1e-12);
+        assert!((a.translation - b.translation).norm() < 1e-9);
+        // with an offset, turning moves the rig sideways in the image; tilting moves it vertically
+        let g = StageGeometry {
+            rig_offset_mm: 300.0,
+            tilt_pivot_mm: 300.0,
+        };
+        let c = rig.centre();
+        let at = |r, t| {
+            let p = crate::render::stage_pose(&rig, &base, &g, r, t).transform(&c);
+            camera.project_cam(&p).unwrap()
+        };
+        let (o, turned, tilted) = (at(0.0, 0.0), at(20.0, 0.0), at(0.0, 20.0));
+        assert!((turned.x - o.x).abs() > 100.0 && (turned.y - o.y).abs() < (turned.x - o.x).abs());
+        assert!(
+            (tilted.y - o.y).abs() > 50.0 && (tilted.x - o.x).abs() < (tilted.y - o.y).abs(),
+            "centre at {o:?}, turned 20°: {turned:?}, tilted 20°: {tilted:?}"
+        );
     }
 }

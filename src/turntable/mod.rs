@@ -202,6 +202,23 @@ pub trait Turntable: Send {
     fn tilt_to(&mut self, target: Degrees) -> Result<Degrees, TurntableError> {
         Err(TurntableError::NoTiltAxis { requested: target })
     }
+    /// Whether a person moves this stage ([`manual::ManualTurntable`]): the station then words each
+    /// pose as one instruction and hands it to [`by_hand`](Turntable::by_hand).
+    fn is_manual(&self) -> bool {
+        false
+    }
+    /// A stage moved by a person: have the whole pose carried out from `instruction` (which names
+    /// the rotation and tilt marks) and return the (rotation, tilt) confirmed. Motorised stages are
+    /// moved axis by axis instead: the default moves the tilt, then the rotation.
+    fn by_hand(
+        &mut self,
+        _instruction: &str,
+        rotation: Degrees,
+        tilt: Option<Degrees>,
+    ) -> Result<(Degrees, Option<Degrees>), TurntableError> {
+        let t = tilt.map(|t| self.tilt_to(t)).transpose()?;
+        Ok((self.move_to(rotation)?, t))
+    }
 }
 
 impl<T: Turntable + ?Sized> Turntable for Box<T> {
@@ -228,6 +245,17 @@ impl<T: Turntable + ?Sized> Turntable for Box<T> {
     }
     fn tilt_to(&mut self, target: Degrees) -> Result<Degrees, TurntableError> {
         (**self).tilt_to(target)
+    }
+    fn is_manual(&self) -> bool {
+        (**self).is_manual()
+    }
+    fn by_hand(
+        &mut self,
+        instruction: &str,
+        rotation: Degrees,
+        tilt: Option<Degrees>,
+    ) -> Result<(Degrees, Option<Degrees>), TurntableError> {
+        (**self).by_hand(instruction, rotation, tilt)
     }
 }
 
