@@ -293,3 +293,33 @@ fn both_simulators_open_with_a_tilt_axis_and_keep_its_limits() {
         assert_eq!((t.tilt_limits(), sims.len()), (None, 1));
     }
 }
+
+/// A turntable-only station keeps working, and its verdict says which parameters it fixed and why
+/// (k3 when the views leave it undetermined, skew by default).
+#[test]
+fn a_one_axis_verdict_names_the_fixed_parameters_and_why() {
+    let cfg = config(&[
+        ("turntable.tilt", "false"),
+        ("plan.stop_when_sufficient", "false"),
+        ("plan.poses", "8"),
+        ("qa.min_coverage", "0.25"),
+    ]);
+    let (r, _) = run(&cfg, None);
+    assert!(r.calibration.is_some(), "{:?}", r.solve_error);
+    assert!(r.views.iter().all(|v| v.tilt_deg.is_none()));
+    let fixed: Vec<_> = r.verdict.fixed.iter().map(|f| f.name.as_str()).collect();
+    assert!(fixed.contains(&"skew"), "{fixed:?}");
+    let k3 = r.verdict.fixed.iter().find(|f| f.name == "k3");
+    if let Some(k3) = k3 {
+        assert!(k3.reason.contains("do not determine"), "{}", k3.reason);
+        assert!(r.notes.iter().any(|n| n.starts_with("k3 fixed at 0")));
+    } else {
+        // estimated: then it must be significant, which a turntable alone rarely gives
+        let c = r.calibration.as_ref().unwrap();
+        let (v, sd) = (c.distortion.coefficients[4], c.std_dev["k3"]);
+        assert!(
+            v.abs() > 2.0 * sd,
+            "k3 {v} ± {sd} kept though insignificant"
+        );
+    }
+}

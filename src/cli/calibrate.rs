@@ -286,6 +286,14 @@ fn print_human(r: &RunResult, store: Option<&std::path::Path>) {
             w(format!("        {h}"));
         }
     }
+    for f in &r.verdict.fixed {
+        w(format!(
+            "  fixed: {} = {} ({})",
+            f.name,
+            super::fmt_value(f.value),
+            f.reason
+        ));
+    }
     match (&r.profile, store) {
         (Some(p), Some(s)) => w(format!(
             "profile: {} (stored in {})",
