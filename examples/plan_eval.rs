@@ -4,8 +4,8 @@
 //! ```sh
 //! cargo run --example plan_eval -- table 20     # line 1: coverage, k3, fx/fy, σ(cx, cy), cx/cy per seed
 //! cargo run --example plan_eval -- compare 10   # line 2: poses to reach the σ targets, planned vs sweep
-//! cargo run --example plan_eval -- manual 5     # line 3: a scripted operator following the prompts
 //! ```
+//! (Line 3, the scripted operator, is `tests/station_plan.rs`: a manual stage renders the same poses.)
 //! Every run is a real station run (render, detect, solve, judge) through the GRBL simulator on a
 //! pseudo-terminal; seeds change the render noise. Each table row says which bars it meets.
 #![allow(clippy::print_stdout, clippy::print_stderr)]
