@@ -407,6 +407,7 @@ fn verdict_fails_when_the_focus_changed_before_the_held_out_pose() {
         turntable_name: name,
         poses: Poses::Angles(angles),
         angle: Some(angle),
+        tilt: None,
         simulator: sim,
         device: None,
         capture: None,
@@ -612,7 +613,7 @@ fn turntable_faults_mid_run_end_with_a_device_error() {
         let (turntable, handle) = grbl_with_fault(fault);
         let hw = Hardware {
             turntable,
-            simulator: Some(handle),
+            simulator: vec![handle],
             ..hw
         };
         let e = assert_fault(

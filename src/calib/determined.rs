@@ -76,7 +76,13 @@ fn unresolved(cal: &Calibration, k: usize, sigmas: f64) -> Option<UndeterminedPa
 /// `max ‖∂π/∂θ_k‖` over the image corners and edge midpoints (see the module docs), per parameter;
 /// `None` when K is singular.
 fn border_gain(cal: &Calibration) -> Option<[f64; N_INTRINSIC]> {
-    let cam = &cal.camera;
+    border_gain_of(&cal.camera)
+}
+
+/// How far (px) a unit change of each intrinsic parameter of `cam` moves the projection of the image
+/// border at most (the image corners and edge midpoints, as in the module docs); `None` when K is
+/// singular. The station's planner weighs distortion terms by it.
+pub fn border_gain_of(cam: &crate::camera::Camera) -> Option<[f64; N_INTRINSIC]> {
     let [w, h] = cam.image_size;
     let (xmax, ymax) = (f64::from(w) - 0.5, f64::from(h) - 0.5);
     let (xmid, ymid) = (0.5 * (xmax - 0.5), 0.5 * (ymax - 0.5));

@@ -701,6 +701,67 @@ fn weakest_parameters(s: &DMatrix<f64>, names: &[&'static str]) -> Vec<&'static 
         .collect()
 }
 
+/// The information each view would give about the free intrinsics: for every view, its reduced
+/// normal matrix `S_i = U_i − W_i V_i⁻¹ W_iᵀ` (the view's own pose eliminated), built by the solver's
+/// own linearisation ([`BlockProblem::linearise`]) at `camera` and `poses` with unit corner noise.
+/// The Schur complement of a set of views is the sum of theirs, so the covariance a solve would reach
+/// on any subset is `σ² (Σ S_i)⁻¹` ([`predicted_covariance`]): this is how the station's planner
+/// predicts what a pose would teach before taking it. The views' points are taken as observed
+/// exactly (zero residuals), which is what the normal matrix of an unbiased fit converges to.
+pub fn view_information(
+    camera: &Camera,
+    poses: &[Pose],
+    views: &[View],
+    model: DistortionModel,
+    fix: &Fix,
+) -> Result<(Vec<&'static str>, Vec<DMatrix<f64>>), CalibError> {
+    if poses.len() != views.len() {
+        return Err(CalibError::InvalidOption {
+            reason: format!("{} poses for {} views", poses.len(), views.len()),
+        });
+    }
+    let mut camera = camera
+        .clone()
+        .with_distortion(model, &camera.distortion_coefficients());
+    apply_fixes(&mut camera, fix);
+    let map = ParamMap::new(model, fix);
+    let q = map.len();
+    let mut out = Vec::with_capacity(views.len());
+    for i in 0..views.len() {
+        // U_i: the view's own share of U, rebuilt from its rows (U is a sum over views).
+        let one = Problem {
+            views: &views[i..=i],
+            active: vec![vec![true; views[i].points.len()]],
+            loss: Loss::Squared,
+            map: ParamMap::new(model, fix),
+        };
+        let ni = one.linearise(&State {
+            camera: camera.clone(),
+            poses: vec![poses[i]],
+        })?;
+        let vi = ni.v[0];
+        let Some(vi_inv) = vi.cholesky().map(|c| c.inverse()) else {
+            out.push(DMatrix::zeros(q, q));
+            continue;
+        };
+        let vi_inv = DMatrix::from_column_slice(6, 6, vi_inv.as_slice());
+        out.push(&ni.u - &ni.w[0] * vi_inv * ni.w[0].transpose());
+    }
+    Ok((map.names, out))
+}
+
+/// The covariance of the free intrinsics (names as [`view_information`] gives them) that a solve of
+/// views with reduced information `infos` would reach with corner noise `sigma_px` per coordinate;
+/// `None` when the sum is singular (some parameter undetermined by these views).
+pub fn predicted_covariance(infos: &[&DMatrix<f64>], sigma_px: f64) -> Option<DMatrix<f64>> {
+    let first = infos.first()?;
+    let mut s = DMatrix::zeros(first.nrows(), first.ncols());
+    for i in infos {
+        s += *i;
+    }
+    s.cholesky().map(|c| c.inverse() * (sigma_px * sigma_px))
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {

@@ -27,7 +27,10 @@ pub use determined::{
     SIGNIFICANCE_SIGMAS, UNDETERMINED_EFFECT_PX, UndeterminedParam, insignificant_at_border,
     undetermined_parameters,
 };
-pub use lm::{Calibration, Fix, SolveOptions, ViewResult, solve, solve_from};
+pub use lm::{
+    Calibration, Fix, SolveOptions, ViewResult, predicted_covariance, solve, solve_from,
+    view_information,
+};
 pub use lm_core::{Loss, Termination};
 pub use rigrefine::{
     FaceCorrection, NoiseCorrelation, RigCalibration, RigPoint, RigRefineOptions, RigView,

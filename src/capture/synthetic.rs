@@ -7,8 +7,8 @@ use std::time::Duration;
 use super::{CaptureError, Frame, FrameSource, SourceInfo};
 use crate::camera::{Camera, Pose};
 use crate::render::{
-    GroundTruth, LinearImage, RenderSettings, SyntheticError, finish, ground_truth, render,
-    render_radiance, turned,
+    GroundTruth, LinearImage, RenderSettings, StageGeometry, SyntheticError, finish, ground_truth,
+    render, render_radiance, stage_pose,
 };
 use crate::rig::Rig;
 
@@ -138,7 +138,8 @@ impl AngleCell {
 }
 
 /// A synthetic camera in front of a turntable: every frame renders the rig at the angle the turntable
-/// last reported ([`AngleCell`]), so a turntable that settles in the wrong place shows in the images.
+/// last reported ([`AngleCell`]), and at the tilt its cradle last reported when it has one
+/// ([`TurntableScene::with_tilt`]), so a stage that settles in the wrong place shows in the images.
 /// Consecutive frames at the same angle share one radiance render (only the noise differs), as a
 /// real camera's frames of a still scene do. [`TurntableScene::with_camera_change`] swaps the camera
 /// from a given frame on (a focus or zoom change mid-run, for tests of the verdict).
@@ -149,10 +150,12 @@ pub struct TurntableScene {
     base: Pose,
     settings: RenderSettings,
     angle: AngleCell,
+    tilt: AngleCell,
+    geometry: StageGeometry,
     change: Option<(u64, Camera)>,
     next: u64,
     frame_interval: Duration,
-    cache: Option<(f64, u64, std::sync::Arc<LinearImage>)>,
+    cache: Option<(f64, f64, u64, std::sync::Arc<LinearImage>)>,
 }
 
 impl TurntableScene {
@@ -172,11 +175,21 @@ impl TurntableScene {
             base,
             settings,
             angle,
+            tilt: AngleCell::default(),
+            geometry: StageGeometry::default(),
             change: None,
             next: 0,
             frame_interval: Duration::from_millis(33),
             cache: None,
         })
+    }
+
+    /// Put the rig on a two-axis stage: `geometry` says where it sits relative to the axes
+    /// ([`stage_pose`]), `tilt` is the angle the tilt axis last reported.
+    pub fn with_tilt(mut self, tilt: AngleCell, geometry: StageGeometry) -> Self {
+        self.tilt = tilt;
+        self.geometry = geometry;
+        self
     }
 
     /// From frame `sequence` on, render with `camera` instead.
@@ -198,9 +211,14 @@ impl TurntableScene {
         }
     }
 
-    /// `cam_from_rig` of the rig at `angle_deg`.
+    /// `cam_from_rig` of the rig at `angle_deg` and the stage's current tilt.
     pub fn pose_at(&self, angle_deg: f64) -> Pose {
-        turned(&self.rig, &self.base, angle_deg)
+        self.pose_at_tilt(angle_deg, self.tilt.get())
+    }
+
+    /// `cam_from_rig` of the rig at `angle_deg` and `tilt_deg`.
+    pub fn pose_at_tilt(&self, angle_deg: f64, tilt_deg: f64) -> Pose {
+        stage_pose(&self.rig, &self.base, &self.geometry, angle_deg, tilt_deg)
     }
 
     fn name(&self) -> String {
@@ -224,6 +242,7 @@ impl FrameSource for TurntableScene {
 
     fn grab(&mut self, _timeout: Duration) -> Result<Frame, CaptureError> {
         let angle = self.angle.get();
+        let tilt = self.tilt.get();
         let seq = self.next;
         let camera = self.camera_at(seq).clone();
         let generation = match &self.change {
@@ -231,19 +250,19 @@ impl FrameSource for TurntableScene {
             _ => 0,
         };
         let radiance = match &self.cache {
-            Some((a, g, img)) if *a == angle && *g == generation => img.clone(),
+            Some((a, t, g, img)) if *a == angle && *t == tilt && *g == generation => img.clone(),
             _ => {
-                let pose = self.pose_at(angle);
+                let pose = self.pose_at_tilt(angle, tilt);
                 let img =
                     render_radiance(&self.rig, &camera, &pose, &self.settings).map_err(|e| {
                         CaptureError::Io {
                             source_name: self.name(),
-                            context: format!("rendering frame {seq} at {angle}°"),
+                            context: format!("rendering frame {seq} at {angle}°, tilt {tilt}°"),
                             source: std::io::Error::other(e),
                         }
                     })?;
                 let img = std::sync::Arc::new(img);
-                self.cache = Some((angle, generation, img.clone()));
+                self.cache = Some((angle, tilt, generation, img.clone()));
                 img
             }
         };

@@ -299,6 +299,14 @@ fn print_human(r: &RunResult, store: Option<&std::path::Path>) {
             w(format!("        {h}"));
         }
     }
+    for f in &r.verdict.fixed {
+        w(format!(
+            "  fixed: {} = {} ({})",
+            f.name,
+            super::fmt_value(f.value),
+            f.reason
+        ));
+    }
     match (&r.profile, store) {
         (Some(p), Some(_)) if let Some(waits) = &r.profile_waits_for => w(format!(
             "profile: {} (waiting in the spool: {waits} unreachable; committed when it returns)",

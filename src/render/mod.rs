@@ -939,3 +939,63 @@ pub fn turned(rig: &Rig, base: &Pose, angle_deg: f64) -> Pose {
         translation: c - r * c,
     })
 }
+
+/// Where the rig sits on a two-axis stage (rotation on a tilting cradle) relative to its axes, in mm.
+/// With both zero and no tilt, [`stage_pose`] is [`turned`].
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct StageGeometry {
+    /// Horizontal distance from the rotation axis to the rig's centre, the rig standing in front of
+    /// the axis (toward the camera at 0°): turning the table then swings the rig across the image.
+    pub rig_offset_mm: f64,
+    /// Height of the rig's centre above the tilt axis: tilting then swings the rig up and down
+    /// the image.
+    pub tilt_pivot_mm: f64,
+}
+
+/// `cam_from_rig` of a rig on a two-axis stage seen by a fixed camera: `base` is `cam_from_rig` at
+/// (0°, 0°). The table turns by `rotation_deg` about the rig's `up` through a point `rig_offset_mm`
+/// behind the rig's centre (away from the camera, horizontally); the table sits on a cradle that
+/// tilts by `tilt_deg` about the horizontal axis `up × (line of sight at 0°)` through the point
+/// `tilt_pivot_mm` below the rig's centre.
+pub fn stage_pose(
+    rig: &Rig,
+    base: &Pose,
+    geometry: &StageGeometry,
+    rotation_deg: f64,
+    tilt_deg: f64,
+) -> Pose {
+    let view = base.rotation.inverse() * Vector3::z();
+    base.compose(&stage_motion(rig, &view, geometry, rotation_deg, tilt_deg))
+}
+
+/// The stage's motion of the rig in its own frame at (0°, 0°) (so `cam_from_rig = base ∘ motion`),
+/// `line_of_sight` being the camera's optical axis at (0°, 0°) in that frame; see [`stage_pose`].
+pub fn stage_motion(
+    rig: &Rig,
+    line_of_sight: &Vector3<f64>,
+    geometry: &StageGeometry,
+    rotation_deg: f64,
+    tilt_deg: f64,
+) -> Pose {
+    let c = rig.centre();
+    let up = rig.up.try_normalize(1e-12).unwrap_or_else(Vector3::z);
+    let view = line_of_sight;
+    let away = (view - up * up.dot(view))
+        .try_normalize(1e-9)
+        .or_else(|| up.cross(&Vector3::x()).try_normalize(1e-9))
+        .unwrap_or_else(Vector3::y);
+    let tilt_axis = up.cross(&away);
+    let axis_point = c + away * geometry.rig_offset_mm;
+    let r = Rotation3::from_axis_angle(&Unit::new_normalize(up), rotation_deg.to_radians());
+    let turn = Pose {
+        rotation: r,
+        translation: axis_point - r * axis_point,
+    };
+    let pivot = c - up * geometry.tilt_pivot_mm;
+    let t = Rotation3::from_axis_angle(&Unit::new_normalize(tilt_axis), tilt_deg.to_radians());
+    let tilt = Pose {
+        rotation: t,
+        translation: pivot - t * pivot,
+    };
+    tilt.compose(&turn)
+}

@@ -13,7 +13,7 @@ use crate::capture::SourceInfo;
 pub mod preview;
 pub mod verdict;
 
-pub use verdict::{Check, Verdict};
+pub use verdict::{Check, FixedParameter, Verdict};
 
 /// `RUN_DIR/result.json`: the verdict, calibration, held-out poses, per-view outcomes, device.
 pub const RESULT: &str = "result.json";
@@ -31,6 +31,9 @@ pub struct ViewRecord {
     /// Session frame file the view was detected in.
     pub frame: Option<String>,
     pub angle_deg: Option<f64>,
+    /// The stage's tilt (two-axis stages).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tilt_deg: Option<f64>,
     pub accepted: bool,
     pub reason: Option<String>,
     pub faces: usize,

@@ -52,11 +52,24 @@ impl Check {
     }
 }
 
-/// The verdict of a run: it passes when every check passes.
+/// A parameter the station held fixed instead of estimating it, at which value and why.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FixedParameter {
+    /// The parameter (`k3`, `cx`, `p1`, `skew`, …).
+    pub name: String,
+    pub value: f64,
+    /// Why: the configuration, or what the data left undetermined (with the estimate and σ).
+    pub reason: String,
+}
+
+/// The verdict of a run: it passes when every check passes. `fixed` lists the parameters that
+/// were not estimated, so that a pass says what it did not measure.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct Verdict {
     pub pass: bool,
     pub checks: Vec<Check>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub fixed: Vec<FixedParameter>,
 }
 
 impl Verdict {
@@ -64,6 +77,7 @@ impl Verdict {
         Verdict {
             pass: !checks.is_empty() && checks.iter().all(|c| c.pass),
             checks,
+            fixed: Vec::new(),
         }
     }
 

@@ -113,6 +113,20 @@ pub struct TurntableSection {
     pub move_timeout_s: u64,
     /// Longest wait for one reply of a serial turntable (raise it for slow links or emulation).
     pub reply_timeout_ms: u64,
+    /// The stage has a tilt axis (a cradle under the table): the simulators then run a second
+    /// simulator for it; real hardware needs `tilt_port`.
+    pub tilt: bool,
+    /// Serial port of the tilt axis's driver (a second GRBL board or Zaber device, same protocol as
+    /// `kind`).
+    pub tilt_port: Option<String>,
+    /// Tilt limits (degrees); homing leaves the cradle at 0°.
+    pub tilt_min_deg: f64,
+    pub tilt_max_deg: f64,
+    /// Horizontal distance (mm) of the rig's centre in front of the rotation axis (toward the
+    /// camera at 0°); turning swings it across the image ([`crate::render::StageGeometry`]).
+    pub rig_offset_mm: f64,
+    /// Height (mm) of the rig's centre above the tilt axis; tilting swings it up and down the image.
+    pub tilt_pivot_mm: f64,
 }
 
 impl Default for TurntableSection {
@@ -125,6 +139,22 @@ impl Default for TurntableSection {
             microsteps_per_degree: crate::turntable::zaber::X_RSW60A_MICROSTEPS_PER_DEGREE,
             move_timeout_s: 60,
             reply_timeout_ms: crate::turntable::DEFAULT_EXCHANGE_TIMEOUT.as_millis() as u64,
+            tilt: false,
+            tilt_port: None,
+            tilt_min_deg: -30.0,
+            tilt_max_deg: 30.0,
+            rig_offset_mm: 300.0,
+            tilt_pivot_mm: 300.0,
+        }
+    }
+}
+
+impl TurntableSection {
+    /// Where the rig sits on the stage's axes.
+    pub fn geometry(&self) -> crate::render::StageGeometry {
+        crate::render::StageGeometry {
+            rig_offset_mm: self.rig_offset_mm,
+            tilt_pivot_mm: self.tilt_pivot_mm,
         }
     }
 }
@@ -141,9 +171,23 @@ pub struct PlanSection {
     pub held_out: usize,
     /// Stop before the plan is exhausted once coverage and the σ targets are met.
     pub stop_when_sufficient: bool,
-    /// The σ targets of `stop_when_sufficient`.
+    /// The σ targets of `stop_when_sufficient` and of the planner.
     pub target_sigma_fx_rel: f64,
     pub target_sigma_cx_px: f64,
+    /// How a moving stage's poses are chosen: `predicted` (each next pose the one whose predicted
+    /// covariance best meets the σ targets, [`crate::station::plan`]) or `sweep` (a uniform grid
+    /// over rotation × tilt, row by row).
+    pub planner: PlannerKind,
+    /// Spacing of the candidate grid (degrees).
+    pub step_deg: f64,
+}
+
+/// `plan.planner`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PlannerKind {
+    Predicted,
+    Sweep,
 }
 
 impl Default for PlanSection {
@@ -155,6 +199,8 @@ impl Default for PlanSection {
             stop_when_sufficient: false,
             target_sigma_fx_rel: 2e-4,
             target_sigma_cx_px: 0.5,
+            planner: PlannerKind::Predicted,
+            step_deg: 10.0,
         }
     }
 }
@@ -576,6 +622,32 @@ impl StationConfig {
         if t.reply_timeout_ms == 0 {
             return Err(bad("turntable.reply_timeout_ms", "must be positive".into()));
         }
+        if !(t.tilt_min_deg.is_finite()
+            && t.tilt_max_deg.is_finite()
+            && t.tilt_min_deg <= 0.0
+            && t.tilt_max_deg >= 0.0
+            && t.tilt_min_deg < t.tilt_max_deg
+            && t.tilt_max_deg - t.tilt_min_deg <= 180.0)
+        {
+            return Err(bad(
+                "turntable.tilt_min_deg",
+                format!(
+                    "tilt limits must hold 0° and span at most 180°, got [{}, {}]",
+                    t.tilt_min_deg, t.tilt_max_deg
+                ),
+            ));
+        }
+        for (key, v) in [
+            ("turntable.rig_offset_mm", t.rig_offset_mm),
+            ("turntable.tilt_pivot_mm", t.tilt_pivot_mm),
+        ] {
+            if !(v.is_finite() && v.abs() <= 10_000.0) {
+                return Err(bad(
+                    key,
+                    format!("must be a distance within ±10 m, got {v}"),
+                ));
+            }
+        }
         let p = &self.plan;
         if p.poses == 0 || p.poses > 1000 {
             return Err(bad(
@@ -597,6 +669,12 @@ impl StationConfig {
         }
         positive("plan.target_sigma_fx_rel", p.target_sigma_fx_rel)?;
         positive("plan.target_sigma_cx_px", p.target_sigma_cx_px)?;
+        if !(p.step_deg.is_finite() && (0.5..=90.0).contains(&p.step_deg)) {
+            return Err(bad(
+                "plan.step_deg",
+                format!("must be 0.5..=90, got {}", p.step_deg),
+            ));
+        }
         let s = &self.synthetic;
         if s.width < crate::detect::MIN_SIDE
             || s.height < crate::detect::MIN_SIDE

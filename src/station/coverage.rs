@@ -58,6 +58,30 @@ impl Coverage {
         self.covered() as f64 / self.total() as f64
     }
 
+    /// The image region of a pixel in words, on a 3×3 division: `top-left`, `top`, …, `centre`.
+    pub fn region_of(&self, uv: &Vector2<f64>) -> &'static str {
+        let third =
+            |x: f64, n: u32| ((3.0 * (x + 0.5) / f64::from(n)).floor().clamp(0.0, 2.0)) as usize;
+        const NAMES: [[&str; 3]; 3] = [
+            ["top-left", "top", "top-right"],
+            ["left", "centre", "right"],
+            ["bottom-left", "bottom", "bottom-right"],
+        ];
+        NAMES[third(uv.y, self.height)][third(uv.x, self.width)]
+    }
+
+    /// How many cells now empty the points would cover.
+    pub fn newly_covered<'a>(&self, points: impl IntoIterator<Item = &'a Vector2<f64>>) -> usize {
+        let mut cells: Vec<usize> = points
+            .into_iter()
+            .filter_map(|p| self.cell(p))
+            .filter(|&c| self.counts[c] == 0)
+            .collect();
+        cells.sort_unstable();
+        cells.dedup();
+        cells.len()
+    }
+
     /// Which of the image's four corner regions (the outer cells) hold no corner, in words.
     pub fn empty_regions(&self) -> Vec<&'static str> {
         let at = |r: usize, c: usize| self.counts[r * self.cols + c] > 0;

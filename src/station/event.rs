@@ -24,6 +24,17 @@ pub enum Event {
         angle_deg: Option<f64>,
         instruction: Option<String>,
     },
+    /// The planner chose the stage pose of pose `index` (two-axis stages): the corners it predicts
+    /// there and the σ it predicts once that view is added ([`crate::station::plan`]).
+    PoseChosen {
+        index: usize,
+        rotation_deg: f64,
+        tilt_deg: f64,
+        corners: usize,
+        predicted: Vec<crate::station::plan::PredictedSigma>,
+    },
+    /// The stage is tilting for pose `index`.
+    Tilting { index: usize, tilt_deg: f64 },
     /// The turntable is moving to pose `index`.
     Moving { index: usize, angle_deg: f64 },
     /// The turntable reports it has settled.

@@ -6,7 +6,8 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use super::StationError;
-use super::config::{SourceKind, StationConfig, TurntableKind};
+use super::config::{PlannerKind, SourceKind, StationConfig, TurntableKind};
+use super::plan::StagePose;
 use crate::capture::images::ImageFiles;
 use crate::capture::session::{ReplaySource, Session};
 use crate::capture::synthetic::{AngleCell, SyntheticSource, TurntableScene};
@@ -31,10 +32,45 @@ pub const BAUD: u32 = 115_200;
 pub enum Poses {
     /// Turntable angles (degrees), moved to one after the other.
     Angles(Vec<f64>),
+    /// A two-axis stage (rotation and tilt): at most `poses` poses, chosen one by one by the
+    /// planner ([`crate::station::plan`]), or `sweep` in order.
+    Stage {
+        poses: usize,
+        sweep: Option<Vec<StagePose>>,
+    },
     /// A sequence of frames that arrive by themselves (replayed session, photos, a person moving
     /// the camera in front of a fixed rig): `n` poses of `frames_per_pose` frames, with the angle
     /// recorded for each pose when known.
     Frames { angles: Vec<Option<f64>> },
+}
+
+impl Poses {
+    /// The number of poses planned (the most a planned stage run takes).
+    pub fn len(&self) -> usize {
+        match self {
+            Poses::Angles(a) => a.len(),
+            Poses::Stage { poses, sweep } => sweep.as_ref().map_or(*poses, |s| s.len().min(*poses)),
+            Poses::Frames { angles } => angles.len(),
+        }
+    }
+
+    /// Whether no pose is planned.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// The poses of a moving stage: one-axis angles, or the two-axis plan (`plan.planner`).
+fn stage_poses(cfg: &StationConfig, tilt: Option<(f64, f64)>) -> Poses {
+    let p = &cfg.plan;
+    match tilt {
+        None => Poses::Angles(plan_angles(p.poses, p.sweep_deg)),
+        Some(limits) => Poses::Stage {
+            poses: p.poses,
+            sweep: (p.planner == PlannerKind::Sweep)
+                .then(|| crate::station::plan::grid(p.sweep_deg, Some(limits), p.step_deg)),
+        },
+    }
 }
 
 /// Everything a run drives.
@@ -46,8 +82,10 @@ pub struct Hardware {
     pub poses: Poses,
     /// Set after every settled move, for a synthetic camera to render at.
     pub angle: Option<AngleCell>,
-    /// Keeps a protocol simulator alive for the run.
-    pub simulator: Option<SimHandle>,
+    /// Set after every settled tilt (two-axis stages).
+    pub tilt: Option<AngleCell>,
+    /// Keeps the protocol simulators alive for the run.
+    pub simulator: Vec<SimHandle>,
     pub device: Option<DeviceInfo>,
     pub capture: Option<Negotiated>,
     pub controls: Vec<ControlSetting>,
@@ -84,14 +122,61 @@ fn sim_motion(units_per_degree: f64) -> SimConfig {
     }
 }
 
-/// A turntable, the simulator serving it (if any) and its description.
-pub type OpenedTurntable = (Box<dyn Turntable>, Option<SimHandle>, String);
+/// One axis's driver, the simulator serving it (if any) and its description.
+type OneAxis = (Box<dyn Turntable>, Option<SimHandle>, String);
 
-/// Open the turntable the config names. `operator` answers a manual turntable's prompts.
+/// A turntable, the simulators serving it (if any) and its description.
+pub type OpenedTurntable = (Box<dyn Turntable>, Vec<SimHandle>, String);
+
+/// Open the turntable the config names, on a tilting cradle when `turntable.tilt` is set and the
+/// kind can have one (the simulators always; GRBL and Zaber with `turntable.tilt_port`): the tilt
+/// driver is a second simulator of the same protocol (GRBL on axis B, Zaber device 2) or the driver
+/// on `tilt_port`. `operator` answers a manual turntable's prompts.
 pub fn open_turntable(
     cfg: &StationConfig,
     operator: Option<Box<dyn Operator>>,
 ) -> Result<OpenedTurntable, StationError> {
+    let t = &cfg.turntable;
+    let (rotation, sim, name) = open_axis(cfg, operator, t.port.clone(), Axis::A, 1)?;
+    let tilt_port = match t.kind {
+        TurntableKind::SimGrbl | TurntableKind::SimZaber => Some(None),
+        TurntableKind::Grbl | TurntableKind::Zaber => t.tilt_port.clone().map(Some),
+        TurntableKind::Manual | TurntableKind::None => None,
+    };
+    let Some(port) = tilt_port.filter(|_| t.tilt) else {
+        return Ok((rotation, sim.into_iter().collect(), name));
+    };
+    let (tilt, tilt_sim, tilt_name) = open_axis(cfg, None, port, Axis::B, 2)?;
+    let stage = crate::turntable::stage::TiltStage::new(
+        rotation,
+        tilt,
+        (
+            crate::turntable::Degrees(t.tilt_min_deg),
+            crate::turntable::Degrees(t.tilt_max_deg),
+        ),
+    )?;
+    let mut sims: Vec<SimHandle> = Vec::new();
+    sims.extend(sim);
+    sims.extend(tilt_sim);
+    Ok((
+        Box::new(stage),
+        sims,
+        format!(
+            "{name}, tilting [{}°, {}°] on {tilt_name}",
+            t.tilt_min_deg, t.tilt_max_deg
+        ),
+    ))
+}
+
+/// One axis: the driver of `cfg.turntable.kind` on `port` (simulators: a new one, on `axis` /
+/// Zaber `device`).
+fn open_axis(
+    cfg: &StationConfig,
+    operator: Option<Box<dyn Operator>>,
+    port: Option<String>,
+    axis: Axis,
+    device: u8,
+) -> Result<OneAxis, StationError> {
     let t = &cfg.turntable;
     let move_timeout = Duration::from_secs(t.move_timeout_s);
     let exchange_timeout = Duration::from_millis(t.reply_timeout_ms);
@@ -99,24 +184,41 @@ pub fn open_turntable(
         exchange_timeout,
         move_timeout,
         home_timeout: move_timeout * 2,
-        ..GrblConfig::new(Axis::A, t.degrees_per_unit)
+        ..GrblConfig::new(axis, t.degrees_per_unit)
+    };
+    // The simulators' tilt is device 2 (a daisy-chained second device); hardware on its own port
+    // answers as device 1.
+    let zaber_device = if t.kind == TurntableKind::SimZaber {
+        device
+    } else {
+        1
     };
     let zaber_config = ZaberConfig {
+        device: zaber_device,
         exchange_timeout,
         move_timeout,
         home_timeout: move_timeout * 2,
         ..ZaberConfig::new(t.microsteps_per_degree)
     };
-    let port_path = || t.port.clone().unwrap_or_default();
+    let port_path = || port.clone().unwrap_or_default();
     Ok(match t.kind {
         TurntableKind::None => (Box::new(FixedRig), None, "none (fixed rig)".into()),
         TurntableKind::Manual => {
             let op = operator.ok_or_else(|| StationError::NoOperator)?;
-            (
-                Box::new(ManualTurntable::new(op, MANUAL_RESOLUTION)?),
-                None,
-                "manual (operator prompts)".into(),
-            )
+            let table = ManualTurntable::new(op, MANUAL_RESOLUTION)?;
+            if t.tilt {
+                let limits = (
+                    crate::turntable::Degrees(t.tilt_min_deg),
+                    crate::turntable::Degrees(t.tilt_max_deg),
+                );
+                (
+                    Box::new(table.with_tilt(limits)),
+                    None,
+                    "manual with a tilting cradle (operator prompts)".into(),
+                )
+            } else {
+                (Box::new(table), None, "manual (operator prompts)".into())
+            }
         }
         TurntableKind::Grbl => {
             let port = crate::turntable::serial::open_port(&port_path(), BAUD)?;
@@ -138,7 +240,7 @@ pub fn open_turntable(
             let (port, handle) = sim::grbl_pair(
                 sim_motion(1.0 / t.degrees_per_unit.abs()),
                 GrblSim {
-                    axis: Axis::A,
+                    axis,
                     homing: false,
                 },
             )?;
@@ -156,7 +258,7 @@ pub fn open_turntable(
             let (port, handle) = sim::zaber_pair(
                 sim_motion(t.microsteps_per_degree),
                 ZaberSim {
-                    device: 1,
+                    device,
                     limit_microsteps: (crate::turntable::MAX_ABS_DEGREES * t.microsteps_per_degree)
                         as i64,
                 },
@@ -214,7 +316,8 @@ pub fn open(
                 turntable_name: "replay (recorded angles)".into(),
                 poses: Poses::Frames { angles },
                 angle: None,
-                simulator: None,
+                tilt: None,
+                simulator: Vec::new(),
                 device: header.device,
                 capture: header.capture,
                 controls: header.controls,
@@ -234,7 +337,8 @@ pub fn open(
                     angles: vec![None; k],
                 },
                 angle: None,
-                simulator: None,
+                tilt: None,
+                simulator: Vec::new(),
                 device: None,
                 capture: None,
                 controls: Vec::new(),
@@ -262,7 +366,8 @@ pub fn open(
                         angles: vec![None; n],
                     },
                     angle: None,
-                    simulator: None,
+                    tilt: None,
+                    simulator: Vec::new(),
                     device: None,
                     capture: None,
                     controls: Vec::new(),
@@ -270,16 +375,22 @@ pub fn open(
                 });
             }
             let angle = AngleCell::default();
+            let tilt = AngleCell::default();
             let base = default_view(rig, &camera);
-            let src = TurntableScene::new(rig.clone(), camera, base, settings, angle.clone())?;
             let (turntable, simulator, turntable_name) = open_turntable(cfg, operator)?;
+            let limits = turntable.tilt_limits().map(|(a, b)| (a.0, b.0));
+            let mut src = TurntableScene::new(rig.clone(), camera, base, settings, angle.clone())?;
+            if limits.is_some() {
+                src = src.with_tilt(tilt.clone(), cfg.turntable.geometry());
+            }
             Ok(Hardware {
                 identity: c.device_id.clone(),
                 source: Box::new(src),
                 turntable,
                 turntable_name,
-                poses: Poses::Angles(plan_angles(n, cfg.plan.sweep_deg)),
+                poses: stage_poses(cfg, limits),
                 angle: Some(angle),
+                tilt: limits.map(|_| tilt),
                 simulator,
                 device: None,
                 capture: None,
@@ -326,7 +437,7 @@ pub fn open(
                     angles: vec![None; n],
                 }
             } else {
-                Poses::Angles(plan_angles(n, cfg.plan.sweep_deg))
+                stage_poses(cfg, turntable.tilt_limits().map(|(a, b)| (a.0, b.0)))
             };
             Ok(Hardware {
                 identity: Some(device.identity()),
@@ -335,6 +446,7 @@ pub fn open(
                 turntable_name,
                 poses,
                 angle: None,
+                tilt: None,
                 simulator,
                 device: Some(device),
                 capture: Some(capture),

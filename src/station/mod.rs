@@ -38,6 +38,7 @@ pub mod event;
 pub mod hardware;
 pub mod judge;
 pub mod notify;
+pub mod plan;
 pub mod setup;
 pub mod sharpness;
 
@@ -227,10 +228,7 @@ pub fn run(
     {
         tracing::info!(error = %e, "stopped by a signal");
         let fpp = spec.config.camera.frames_per_pose.max(1) as usize;
-        let total = match &hw.poses {
-            Poses::Angles(a) => a.len(),
-            Poses::Frames { angles } => angles.len(),
-        };
+        let total = hw.poses.len();
         outcome = Err(StationError::Interrupted {
             pose: session.frame_count() / fpp,
             total,
@@ -292,14 +290,15 @@ fn capture_poses(
     let fpp = cfg.camera.frames_per_pose.max(1) as usize;
     let timeout = Duration::from_millis(cfg.camera.grab_timeout_ms);
     let info = hw.source.describe();
-    let total = match &hw.poses {
-        Poses::Angles(a) => a.len(),
-        Poses::Frames { angles } => angles.len(),
-    };
+    let total = hw.poses.len();
     let mut finder = CornerFinder::new().map_err(|e| StationError::Detect(e.to_string()))?;
     let mut coverage = Coverage::new(info.width, info.height, cfg.qa.coverage_grid);
     let mut out = Vec::with_capacity(total);
-    let moving = matches!(hw.poses, Poses::Angles(_));
+    let moving = matches!(hw.poses, Poses::Angles(_) | Poses::Stage { .. });
+    let mut planning = match &hw.poses {
+        Poses::Stage { sweep: None, .. } => Some(plan::Planning::new(spec, &info, &*hw.turntable)),
+        _ => None,
+    };
     // Homing gets twice the move timeout (hardware::open_turntable); past that, let the watchdog see.
     let move_limit =
         Duration::from_secs(cfg.turntable.move_timeout_s) * 2 + Duration::from_secs(10);
@@ -307,6 +306,9 @@ fn capture_poses(
         let home = notify::alive_during(sink, move_limit, || hw.turntable.home())?;
         if let Some(cell) = &hw.angle {
             cell.set(home.0);
+        }
+        if let Some(cell) = &hw.tilt {
+            cell.set(0.0);
         }
     }
     for index in 0..total {
@@ -317,31 +319,100 @@ fn capture_poses(
                 session: spec.run_dir.join(crate::run::SESSION),
             });
         }
-        let planned = match &hw.poses {
-            Poses::Angles(a) => Some(a[index]),
-            Poses::Frames { angles } => angles[index],
+        let manual = hw.turntable.is_manual();
+        let has_tilt = matches!(hw.poses, Poses::Stage { .. });
+        let (planned, tilt, target) = match &hw.poses {
+            Poses::Angles(a) => (Some(a[index]), None, None),
+            Poses::Stage { sweep: Some(s), .. } => {
+                (Some(s[index].rotation_deg), Some(s[index].tilt_deg), None)
+            }
+            Poses::Stage { sweep: None, .. } => {
+                let Some(choice) = planning.as_mut().and_then(|p| p.choose()) else {
+                    tracing::info!(
+                        poses = index,
+                        "no candidate pose left that shows the rig; ending the plan"
+                    );
+                    break;
+                };
+                sink.event(&Event::PoseChosen {
+                    index,
+                    rotation_deg: choice.pose.rotation_deg,
+                    tilt_deg: choice.pose.tilt_deg,
+                    corners: choice.corners,
+                    predicted: choice.sigma.clone(),
+                });
+                // Where the predicted corners land: their mean, and the empty cells they fill.
+                let n = choice.points.len().max(1) as f64;
+                let mean = choice.points.iter().sum::<nalgebra::Vector2<f64>>() / n;
+                let target = (
+                    coverage.region_of(&mean),
+                    coverage.newly_covered(&choice.points),
+                );
+                (
+                    Some(choice.pose.rotation_deg),
+                    Some(choice.pose.tilt_deg),
+                    Some(target),
+                )
+            }
+            Poses::Frames { angles } => (angles[index], None, None),
         };
+        // A person moving the stage gets the whole pose in words (never empty for a manual pose).
+        let instruction = (manual && moving).then(|| {
+            plan::instruction(
+                plan::StagePose {
+                    rotation_deg: planned.unwrap_or(0.0),
+                    tilt_deg: tilt.unwrap_or(0.0),
+                },
+                has_tilt,
+                target,
+            )
+        });
         sink.event(&Event::PosePlanned {
             index,
             total,
             angle_deg: planned,
-            instruction: None,
+            instruction: instruction.clone(),
         });
         let mut angle = planned;
-        if moving && let Some(target) = planned {
-            sink.event(&Event::Moving {
-                index,
-                angle_deg: target,
-            });
-            let target = Degrees::checked(target)?;
-            let settled = notify::alive_during(sink, move_limit, || hw.turntable.move_to(target))?;
-            if let Some(cell) = &hw.angle {
-                cell.set(settled.0);
+        if moving && let Some(rotation) = planned {
+            let rotation = Degrees::checked(rotation)?;
+            let tilt_target = tilt.map(Degrees::checked).transpose()?;
+            let settled = match &instruction {
+                Some(text) => notify::alive_during(sink, move_limit, || {
+                    hw.turntable.by_hand(text, rotation, tilt_target)
+                })?,
+                None => {
+                    let settled_tilt = match tilt_target {
+                        Some(t) => {
+                            sink.event(&Event::Tilting {
+                                index,
+                                tilt_deg: t.0,
+                            });
+                            Some(notify::alive_during(sink, move_limit, || {
+                                hw.turntable.tilt_to(t)
+                            })?)
+                        }
+                        None => None,
+                    };
+                    sink.event(&Event::Moving {
+                        index,
+                        angle_deg: rotation.0,
+                    });
+                    let r =
+                        notify::alive_during(sink, move_limit, || hw.turntable.move_to(rotation))?;
+                    (r, settled_tilt)
+                }
+            };
+            if let (Some(cell), Some(t)) = (&hw.tilt, settled.1) {
+                cell.set(t.0);
             }
-            angle = Some(settled.0);
+            if let Some(cell) = &hw.angle {
+                cell.set(settled.0.0);
+            }
+            angle = Some(settled.0.0);
             sink.event(&Event::Settled {
                 index,
-                angle_deg: settled.0,
+                angle_deg: settled.0.0,
             });
             if cfg.turntable.settle_ms > 0 {
                 std::thread::sleep(Duration::from_millis(cfg.turntable.settle_ms));
@@ -362,9 +433,19 @@ fn capture_poses(
             sequence: last,
             flushed,
         });
-        let pose = examine(spec, &mut finder, &frames, name, grabbed, angle)?;
+        let mut pose = examine(spec, &mut finder, &frames, name, grabbed, angle)?;
+        pose.record.tilt_deg = tilt;
         match &pose.view {
             Some((view, _)) => {
+                if let (Some(p), Some(r), Some(t)) = (planning.as_mut(), planned, tilt) {
+                    p.accepted(
+                        plan::StagePose {
+                            rotation_deg: r,
+                            tilt_deg: t,
+                        },
+                        view,
+                    );
+                }
                 for p in &view.points {
                     coverage.add(&p.uv);
                 }
@@ -485,6 +566,7 @@ fn examine_frames(
         name,
         frame: grabbed.frame_file,
         angle_deg: angle,
+        tilt_deg: None,
         accepted: false,
         reason: None,
         faces: 0,
@@ -651,9 +733,14 @@ fn sufficient(spec: &RunSpec<'_>, poses: &[PoseData], coverage: &Coverage, w: u3
     match crate::calib::solve(fit, [w, h], &opts) {
         Ok(cal) => {
             use crate::camera::idx;
+            // k3 must be determined too when the solve would otherwise fix it
+            let k3_ok = !cfg.solve.fix_undetermined_k3
+                || crate::calib::insignificant_at_border(&cal, idx::K3).is_none();
             cal.std_dev[idx::FX] / cal.camera.fx() <= cfg.plan.target_sigma_fx_rel
+                && cal.std_dev[idx::FY] / cal.camera.fy() <= cfg.plan.target_sigma_fx_rel
                 && cal.std_dev[idx::CX] <= cfg.plan.target_sigma_cx_px
                 && cal.std_dev[idx::CY] <= cfg.plan.target_sigma_cx_px
+                && k3_ok
         }
         Err(_) => false,
     }
@@ -740,6 +827,7 @@ fn solve_and_judge(
         points: fit.iter().map(|v| v.points.len()).sum(),
     });
     let mut opts = cfg.solve_options("station config")?;
+    let mut fixed = configured_fixes(&opts, image_size);
     let mut cal = match notify::alive_during(sink, SOLVE_LIMIT, || {
         crate::calib::solve(&fit, image_size, &opts)
     }) {
@@ -759,9 +847,18 @@ fn solve_and_judge(
             crate::calib::solve(&fit, image_size, &opts)
         }) {
             Ok(c) => {
-                notes.push(format!(
-                    "k3 fixed at 0: these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}); add poses with the rig near the image corners to estimate it"
-                ));
+                let why = format!(
+                    "these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}, within {}σ of 0, and 1σ moves the image border by {:.1} px); add poses with the rig near the image corners to estimate it",
+                    crate::calib::SIGNIFICANCE_SIGMAS,
+                    crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3)
+                        .map_or(0.0, |u| u.effect_px)
+                );
+                notes.push(format!("k3 fixed at 0: {why}"));
+                fixed.push(crate::run::FixedParameter {
+                    name: "k3".into(),
+                    value: 0.0,
+                    reason: why,
+                });
                 cal = c;
             }
             Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
@@ -831,10 +928,64 @@ fn solve_and_judge(
         held_failures: &held_failures,
         views: &result.views,
     });
+    result.verdict.fixed = fixed;
+    for u in crate::calib::undetermined_parameters(&cal) {
+        notes.push(format!(
+            "{} is not determined by these views ({:.4} ± {:.4}; 1σ moves the image border by {:.1} px)",
+            u.name, u.value, u.std_dev, u.effect_px
+        ));
+    }
     result.calibration = Some(CalibrationReport::from(&cal));
     result.held_out = held_out;
     result.notes = notes;
     Ok(result)
+}
+
+/// The parameters the solve options hold fixed, each with its value and the reason (the config).
+fn configured_fixes(
+    opts: &crate::calib::SolveOptions,
+    image_size: [u32; 2],
+) -> Vec<crate::run::FixedParameter> {
+    let mut out = Vec::new();
+    let mut push = |name: &str, value: f64, reason: &str| {
+        out.push(crate::run::FixedParameter {
+            name: name.into(),
+            value,
+            reason: reason.into(),
+        })
+    };
+    let f = &opts.fix;
+    if let Some(a) = f.aspect_ratio {
+        push(
+            "fx/fy",
+            a,
+            "configured (solve.fix = aspect): square pixels assumed",
+        );
+    }
+    if f.principal_point {
+        let c = crate::calib::init::image_centre(image_size);
+        let why = "configured (solve.fix = principal-point): held at the image centre";
+        push("cx", c.x, why);
+        push("cy", c.y, why);
+    }
+    if f.skew {
+        push(
+            "skew",
+            0.0,
+            "held at 0 by default: modern sensors have none",
+        );
+    }
+    if opts.model != crate::camera::DistortionModel::Pinhole {
+        if f.tangential {
+            let why = "configured (solve.fix = tangential)";
+            push("p1", 0.0, why);
+            push("p2", 0.0, why);
+        }
+        if f.k3 {
+            push("k3", 0.0, "configured (solve.fix = k3)");
+        }
+    }
+    out
 }
 
 /// Write the profile of a passing run: `RUN_DIR/profile.json` always, and into the per-device store

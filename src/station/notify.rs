@@ -215,6 +215,19 @@ impl SystemdNotifier {
                     (None, None) => format!("{pose}: planned"),
                 }
             }
+            Event::PoseChosen {
+                index,
+                rotation_deg,
+                tilt_deg,
+                corners,
+                ..
+            } => format!(
+                "{}: chose rotation {rotation_deg:.1}°, tilt {tilt_deg:.1}° ({corners} corners predicted)",
+                self.pose(*index)
+            ),
+            Event::Tilting { index, tilt_deg } => {
+                format!("{}: tilting to {tilt_deg:.1}°", self.pose(*index))
+            }
             Event::Moving { index, angle_deg } => {
                 format!("{}: turning to {angle_deg:.1}°", self.pose(*index))
             }

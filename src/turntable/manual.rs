@@ -23,6 +23,8 @@ pub struct ManualTurntable<O> {
     operator: O,
     position: Degrees,
     resolution: Degrees,
+    /// The tilt limits of a cradle with marks, and its position.
+    tilt: Option<((Degrees, Degrees), Degrees)>,
 }
 
 /// Default resolution of a hand-turned table with degree marks.
@@ -41,7 +43,18 @@ impl<O: Operator> ManualTurntable<O> {
             operator,
             position: Degrees(0.0),
             resolution,
+            tilt: None,
         })
+    }
+
+    /// The table stands on a cradle tilted by hand to marks within `limits`.
+    pub fn with_tilt(mut self, limits: (Degrees, Degrees)) -> Self {
+        self.tilt = Some((limits, Degrees(0.0)));
+        self
+    }
+
+    fn mark(&self, a: Degrees) -> Degrees {
+        Degrees((a.0 / self.resolution.0).round() * self.resolution.0)
     }
 
     /// Give the operator back.
@@ -94,6 +107,64 @@ impl<O: Operator> Turntable for ManualTurntable<O> {
 
     fn resolution(&self) -> Degrees {
         self.resolution
+    }
+
+    fn tilt_limits(&self) -> Option<(Degrees, Degrees)> {
+        self.tilt.map(|t| t.0)
+    }
+
+    fn tilt_to(&mut self, target: Degrees) -> Result<Degrees, TurntableError> {
+        let Some(((min, max), from)) = self.tilt else {
+            return Err(TurntableError::NoTiltAxis { requested: target });
+        };
+        let mark = self.mark(Degrees::checked(target.0)?);
+        if mark.0 < min.0 || mark.0 > max.0 {
+            return Err(TurntableError::BeyondLimit {
+                axis: "tilt",
+                requested: target,
+                min,
+                max,
+            });
+        }
+        self.ask(format!("tilt the cradle from {from:.1} to {mark:.1}"))?;
+        self.tilt = Some(((min, max), mark));
+        Ok(mark)
+    }
+
+    fn is_manual(&self) -> bool {
+        true
+    }
+
+    /// One prompt for the whole pose: `instruction` as the station worded it.
+    fn by_hand(
+        &mut self,
+        instruction: &str,
+        rotation: Degrees,
+        tilt: Option<Degrees>,
+    ) -> Result<(Degrees, Option<Degrees>), TurntableError> {
+        let rotation = self.mark(Degrees::checked(rotation.0)?);
+        let tilt = match (tilt, self.tilt) {
+            (Some(t), Some(((min, max), _))) => {
+                let mark = self.mark(Degrees::checked(t.0)?);
+                if mark.0 < min.0 || mark.0 > max.0 {
+                    return Err(TurntableError::BeyondLimit {
+                        axis: "tilt",
+                        requested: t,
+                        min,
+                        max,
+                    });
+                }
+                Some(mark)
+            }
+            (Some(t), None) => return Err(TurntableError::NoTiltAxis { requested: t }),
+            (None, _) => None,
+        };
+        self.ask(instruction.to_string())?;
+        self.position = rotation;
+        if let (Some(t), Some((limits, _))) = (tilt, self.tilt) {
+            self.tilt = Some((limits, t));
+        }
+        Ok((rotation, tilt))
     }
 }
 

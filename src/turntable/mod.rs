@@ -27,6 +27,11 @@
 //! suite (`tests/turntable_contract.rs`) runs the same functions against the fake and against both
 //! drivers talking to their simulators.
 //!
+//! A second axis: [`stage::TiltStage`] puts a rotation stage on a tilting cradle driven by a second
+//! driver (its own serial link: a second GRBL controller's axis, a second Zaber device), with limits
+//! and homing per axis; the trait's [`tilt_limits`](Turntable::tilt_limits) and
+//! [`tilt_to`](Turntable::tilt_to) default to "no tilt axis", so one-axis stages are unchanged.
+//!
 //! # Protocols
 //! **GRBL 1.1** (G-code over serial, 115200 8N1). Line commands end in `\n` and are answered by `ok`,
 //! `error:N` or, asynchronously, `ALARM:N`; [`grbl::error_meaning`] and [`grbl::alarm_meaning`] carry
@@ -104,6 +109,7 @@ pub mod grbl;
 pub mod manual;
 pub mod serial;
 pub mod sim;
+pub mod stage;
 pub mod zaber;
 
 /// Default wait for one reply from the stage.
@@ -186,6 +192,33 @@ pub trait Turntable: Send {
     fn stop(&mut self) -> Result<(), TurntableError>;
     /// The smallest position step the stage reports; the tolerance of a settled read-back.
     fn resolution(&self) -> Degrees;
+    /// The tilt axis's limits, when the stage has one ([`stage::TiltStage`]); `None` for a
+    /// one-axis turntable (the default).
+    fn tilt_limits(&self) -> Option<(Degrees, Degrees)> {
+        None
+    }
+    /// Tilt to an absolute angle within [`tilt_limits`](Turntable::tilt_limits) and return the
+    /// settled tilt, as [`move_to`](Turntable::move_to) does for the rotation.
+    fn tilt_to(&mut self, target: Degrees) -> Result<Degrees, TurntableError> {
+        Err(TurntableError::NoTiltAxis { requested: target })
+    }
+    /// Whether a person moves this stage ([`manual::ManualTurntable`]): the station then words each
+    /// pose as one instruction and hands it to [`by_hand`](Turntable::by_hand).
+    fn is_manual(&self) -> bool {
+        false
+    }
+    /// A stage moved by a person: have the whole pose carried out from `instruction` (which names
+    /// the rotation and tilt marks) and return the (rotation, tilt) confirmed. Motorised stages are
+    /// moved axis by axis instead: the default moves the tilt, then the rotation.
+    fn by_hand(
+        &mut self,
+        _instruction: &str,
+        rotation: Degrees,
+        tilt: Option<Degrees>,
+    ) -> Result<(Degrees, Option<Degrees>), TurntableError> {
+        let t = tilt.map(|t| self.tilt_to(t)).transpose()?;
+        Ok((self.move_to(rotation)?, t))
+    }
 }
 
 impl<T: Turntable + ?Sized> Turntable for Box<T> {
@@ -206,6 +239,23 @@ impl<T: Turntable + ?Sized> Turntable for Box<T> {
     }
     fn resolution(&self) -> Degrees {
         (**self).resolution()
+    }
+    fn tilt_limits(&self) -> Option<(Degrees, Degrees)> {
+        (**self).tilt_limits()
+    }
+    fn tilt_to(&mut self, target: Degrees) -> Result<Degrees, TurntableError> {
+        (**self).tilt_to(target)
+    }
+    fn is_manual(&self) -> bool {
+        (**self).is_manual()
+    }
+    fn by_hand(
+        &mut self,
+        instruction: &str,
+        rotation: Degrees,
+        tilt: Option<Degrees>,
+    ) -> Result<(Degrees, Option<Degrees>), TurntableError> {
+        (**self).by_hand(instruction, rotation, tilt)
     }
 }
 
@@ -332,6 +382,17 @@ pub enum TurntableError {
         #[source]
         source: io::Error,
     },
+    /// A tilt was asked of a stage without a tilt axis.
+    #[error("the stage has no tilt axis: cannot tilt to {requested}")]
+    NoTiltAxis { requested: Degrees },
+    /// A move beyond an axis's configured limits.
+    #[error("{axis} {requested} is beyond the axis's limits [{min}, {max}]")]
+    BeyondLimit {
+        axis: &'static str,
+        requested: Degrees,
+        min: Degrees,
+        max: Degrees,
+    },
     /// A fixed rig (no turntable) was asked to move.
     #[error("the rig is fixed (no turntable): cannot move to {requested}")]
     FixedRig { requested: Degrees },
@@ -377,7 +438,9 @@ impl TurntableError {
             | TurntableError::Operator { .. } => exit::DEVICE,
             TurntableError::InvalidAngle { .. }
             | TurntableError::InvalidConfig { .. }
-            | TurntableError::FixedRig { .. } => exit::BAD_INPUT,
+            | TurntableError::FixedRig { .. }
+            | TurntableError::NoTiltAxis { .. }
+            | TurntableError::BeyondLimit { .. } => exit::BAD_INPUT,
             TurntableError::Simulator { .. } => exit::INTERNAL,
         }
     }
