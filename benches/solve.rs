@@ -1,5 +1,6 @@
 //! Solve-time benchmark: `cargo bench --bench solve`. Prints the median and spread of the full solve
-//! (initialisation + Levenberg–Marquardt + covariance) on synthetic cube data, single-threaded.
+//! (initialisation + Levenberg–Marquardt + covariance) on synthetic cube data, single-threaded. The
+//! points of `solve` carry their covariance (as detected corners do), so it times the weighted solve.
 #![allow(clippy::print_stdout, clippy::unwrap_used)]
 
 use std::time::{Duration, Instant};
@@ -28,7 +29,13 @@ fn cpu_ms_per_run(start: Option<u64>, runs: usize) -> String {
 fn bench(label: &str, n_views: usize, reps: usize) {
     let camera = reference_camera();
     let sc = cube_scenario(&camera, 200.0, n_views, 42);
-    let views = add_noise(&sc.views, 0.3, 43);
+    let mut views = add_noise(&sc.views, 0.3, 43);
+    // Each point with its covariance, as the detector's corners come: the solve is weighted.
+    for v in &mut views {
+        for p in &mut v.points {
+            p.cov = Some(nalgebra::Matrix2::from_diagonal_element(0.3 * 0.3));
+        }
+    }
     let n_points: usize = views.iter().map(|v| v.points.len()).sum();
     let opts = SolveOptions::default();
     // Warm-up.
@@ -113,6 +120,7 @@ fn bench_rig_refinement(reps: usize) {
                         corner: c,
                         uv: uv + n,
                         sigma_px: Some(0.03),
+                        cov: None,
                     })
                 })
                 .collect(),

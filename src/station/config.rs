@@ -711,6 +711,8 @@ impl StationConfig {
             loss,
             outlier_sigma: None,
             max_iterations: 200,
+            // The detector's corners carry their covariances: weighted by them.
+            weighting: Default::default(),
         })
     }
 }

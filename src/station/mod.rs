@@ -563,6 +563,7 @@ fn examine(
             points.push(Correspondence {
                 xyz: c.xyz,
                 uv: c.uv,
+                cov: c.covariance(),
             });
             faces.push(face_name.clone());
         }
@@ -661,6 +662,7 @@ fn solve_and_judge(
                             xyz: c.xyz.into(),
                             uv: c.uv.into(),
                             face: Some(f.clone()),
+                            cov: c.cov.as_ref().map(crate::calib::observations::cov_to_array),
                         })
                         .collect(),
                     frame: frame.clone(),
