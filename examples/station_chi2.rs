@@ -34,6 +34,8 @@ fn main() {
     for seed in 1..=n {
         let mut t = toml::Table::new();
         set_key(&mut t, "synthetic.seed", &seed.to_string()).unwrap();
+        // The station weighting each corner by its covariance; re-solved below with equal weights.
+        set_key(&mut t, "solve.weighting", "covariance").unwrap();
         // A loaded machine delays the simulated turntable's replies beyond the default wait.
         set_key(&mut t, "turntable.reply_timeout_ms", "20000").unwrap();
         let cfg = StationConfig::from_table(t, "station_chi2").unwrap();
