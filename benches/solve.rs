@@ -1,5 +1,6 @@
 //! Solve-time benchmark: `cargo bench --bench solve`. Prints the median and spread of the full solve
-//! (initialisation + Levenberg–Marquardt + covariance) on synthetic cube data, single-threaded.
+//! (initialisation + Levenberg–Marquardt + covariance) on synthetic cube data, single-threaded. The
+//! points of `solve` carry their covariance (as detected corners do), so it times the weighted solve.
 #![allow(clippy::print_stdout, clippy::unwrap_used)]
 
 use std::time::{Duration, Instant};
@@ -25,10 +26,20 @@ fn cpu_ms_per_run(start: Option<u64>, runs: usize) -> String {
     }
 }
 
-fn bench(label: &str, n_views: usize, reps: usize) {
+/// `weighted`: every point carries its covariance and the solve whitens by it (issue 29); otherwise
+/// the equally weighted solve. The two are run side by side, so their ratio is measured in one run.
+fn bench(label: &str, n_views: usize, reps: usize, weighted: bool) -> f64 {
     let camera = reference_camera();
     let sc = cube_scenario(&camera, 200.0, n_views, 42);
-    let views = add_noise(&sc.views, 0.3, 43);
+    let mut views = add_noise(&sc.views, 0.3, 43);
+    // Each point with its covariance, as the detector's corners come: the solve is weighted.
+    if weighted {
+        for v in &mut views {
+            for p in &mut v.points {
+                p.cov = Some(nalgebra::Matrix2::new(0.09, 0.01, 0.01, 0.08));
+            }
+        }
+    }
     let n_points: usize = views.iter().map(|v| v.points.len()).sum();
     let opts = SolveOptions::default();
     // Warm-up.
@@ -42,17 +53,28 @@ fn bench(label: &str, n_views: usize, reps: usize) {
             t.elapsed()
         })
         .collect();
+    let cpu_per_run = cpu0
+        .zip(cpu_ns())
+        .map(|(a, b)| (b - a) as f64 / 1e6 / reps as f64);
     let cpu = cpu_ms_per_run(cpu0, reps);
     times.sort();
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
     println!(
-        "{label}: {n_views} views, {n_points} points, brown5: {cpu}; wall median {:.2} ms (min {:.2}, p90 {:.2}) over {reps} runs; {} LM iterations, rms {:.3} px",
+        "{label} ({}): {n_views} views, {n_points} points, brown5: {cpu}; wall median {:.2} ms (min {:.2}, p90 {:.2}) over {reps} runs; {} LM iterations, rms {:.3} px",
+        if weighted {
+            "weighted"
+        } else {
+            "equal weights"
+        },
         ms(times[reps / 2]),
         ms(times[0]),
         ms(times[reps * 9 / 10]),
         cal.iterations,
         cal.rms_px
     );
+    // This thread's CPU time per LM iteration (wall time on a loaded machine is mostly other
+    // processes'; the weighting may change the number of iterations, not only their cost).
+    cpu_per_run.unwrap_or(ms(times[reps / 2])) / cal.iterations.max(1) as f64
 }
 
 /// 12 views × 3 faces of `fixtures/rigs/cube_outside.toml` (side boards moved by ~1 mm and 0.5°),
@@ -113,6 +135,7 @@ fn bench_rig_refinement(reps: usize) {
                         corner: c,
                         uv: uv + n,
                         sigma_px: Some(0.03),
+                        cov: None,
                     })
                 })
                 .collect(),
@@ -152,7 +175,16 @@ fn main() {
         .and_then(|v| v.parse::<usize>().ok())
         .filter(|&n| n >= 1);
     let reps = env_reps.unwrap_or(if quick { 3 } else { 101 });
-    bench("solve", 10, reps);
-    bench("solve", 50, env_reps.unwrap_or(if quick { 1 } else { 21 }));
+    for (n_views, reps) in [
+        (10, reps),
+        (50, env_reps.unwrap_or(if quick { 1 } else { 21 })),
+    ] {
+        let equal = bench("solve", n_views, reps, false);
+        let weighted = bench("solve", n_views, reps, true);
+        println!(
+            "solve, {n_views} views: weighted / equal weights, CPU time per LM iteration: {:.3}",
+            weighted / equal
+        );
+    }
     bench_rig_refinement(reps);
 }

@@ -108,6 +108,7 @@ fn main() {
                         .map(|c| Correspondence {
                             xyz: c.xyz,
                             uv: c.uv,
+                            cov: c.covariance(),
                         })
                         .collect(),
                 });

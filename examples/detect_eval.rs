@@ -14,7 +14,8 @@
 //! within 1 px) and its number of candidates. `REREFINE=1` also fits the corners again in
 //! undistorted coordinates, with the true camera and with calibrations solved from the corners
 //! (see `rerefine_report`), and prints the calibration's errors before and after. `NOISE=σ`
-//! renders with pixel noise σ instead of the set's (`NOISE=0`: the noise-free bias).
+//! renders with pixel noise σ instead of the set's (`NOISE=0`: the noise-free bias); `SS=n` with
+//! n×n supersampling; `VIG`, `GAMMA`, `BLUR` with that vignetting, gamma, blur σ.
 #![allow(clippy::print_stdout, clippy::print_stderr)]
 
 use std::path::PathBuf;
@@ -66,6 +67,21 @@ fn main() -> anyhow::Result<()> {
     if let Some(sigma) = noise {
         settings.noise_sigma = sigma;
     }
+    // VIG, GAMMA, BLUR override the set's vignetting, gamma and blur σ (to tell which part of the
+    // image model a noise-free bias comes from).
+    let knob = |name: &str| -> anyhow::Result<Option<f64>> {
+        Ok(std::env::var(name).ok().map(|s| s.parse()).transpose()?)
+    };
+    let (vig, gamma, blur) = (knob("VIG")?, knob("GAMMA")?, knob("BLUR")?);
+    if let Some(v) = vig {
+        settings.vignetting = v;
+    }
+    if let Some(g) = gamma {
+        settings.gamma = g;
+    }
+    if let Some(b) = blur {
+        settings.blur_sigma_px = b;
+    }
     // PAN_DEG=θ turns the camera about its vertical axis by ±θ (alternating) so that the rig is
     // cut by the image border: partially visible faces.
     let pan_deg: f64 = std::env::var("PAN_DEG")
@@ -82,6 +98,11 @@ fn main() -> anyhow::Result<()> {
     }
     if let Some(sigma) = noise {
         dir_name += &format!("-noise{sigma}");
+    }
+    for (tag, v) in [("vig", vig), ("gamma", gamma), ("blur", blur)] {
+        if let Some(v) = v {
+            dir_name += &format!("-{tag}{v}");
+        }
     }
     let dir = cache.join(dir_name);
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;

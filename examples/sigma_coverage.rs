@@ -3,8 +3,10 @@
 //! reported σ (issue 20, acceptance line 4: the truth within ±2σ in 90–99 % of trials).
 //!
 //! ```sh
-//! cargo run --release --example sigma_coverage -- SET N VIEWS [exact|inflated|refine]
+//! cargo run --release --example sigma_coverage -- SET N VIEWS [exact|inflated|refine|equal]
 //! ```
+//! `exact` (the default) solves with each corner weighted by its own covariance from the detector's
+//! fit (issue 29); `equal` weights every corner alike (the solve before issue 29).
 //! `SET` is `realistic` or `hard` ([`EvalSet`]). Prints per parameter: coverage of ±2σ, mean and
 //! standard deviation of the z-scores `(estimate − truth)/σ` (mean ≠ 0: a bias; std > 1: σ too small),
 //! the empirical spread of the estimates against the mean reported σ, and the fit's noise estimate
@@ -33,6 +35,9 @@ fn main() {
     let refine = args.get(4).is_some_and(|s| s == "refine");
     // `exact`: the plain solve's σ; `inflated`: with the neighbour-correlation inflation.
     let inflate = args.get(4).is_some_and(|s| s == "inflated");
+    let equal = args.get(4).is_some_and(|s| s == "equal");
+    let mut noise_scale = Vec::new();
+    let mut chi2 = Vec::new();
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/fixtures/rigs/cube_outside.toml"
@@ -94,7 +99,15 @@ fn main() {
             .map(|r| r.calibration)
         } else {
             let v: Vec<_> = views.iter().map(|v| v.to_view(&rig).unwrap()).collect();
-            calib::solve(&v, camera.image_size, &SolveOptions::default()).map(|mut c| {
+            let opts = SolveOptions {
+                weighting: if equal {
+                    calib::Weighting::Equal
+                } else {
+                    calib::Weighting::Covariance
+                },
+                ..SolveOptions::default()
+            };
+            calib::solve(&v, camera.image_size, &opts).map(|mut c| {
                 if inflate {
                     calib::inflate_for_neighbour_correlation(&mut c, &views, &rig);
                 }
@@ -108,6 +121,9 @@ fn main() {
                 continue;
             }
         };
+        if let Some(c) = cal.chi2_against(&camera.params, &["fx", "fy", "cx", "cy"]) {
+            chi2.push(c);
+        }
         let mut zr = [0.0; 5];
         let mut er = [0.0; 5];
         let mut sr = [0.0; 5];
@@ -117,6 +133,9 @@ fn main() {
             zr[j] = er[j] / sr[j];
         }
         ratio.push(cal.sigma_px / det_sigma[det_sigma.len() / 2]);
+        if let Some(s) = cal.noise_scale {
+            noise_scale.push(s);
+        }
         z.push(zr);
         err.push(er);
         sig.push(sr);
@@ -129,8 +148,10 @@ fn main() {
             "rig refined (σ inflated for neighbour correlation)"
         } else if inflate {
             "exact rig, σ inflated for neighbour correlation"
+        } else if equal {
+            "exact rig, corners weighted equally"
         } else {
-            "exact rig, plain σ"
+            "exact rig, corners weighted by their own covariances"
         }
     );
     for j in 0..5 {
@@ -154,6 +175,17 @@ fn main() {
     }
     let mr = ratio.iter().sum::<f64>() / m;
     println!("  fit σ̂ / detector's median corner σ: mean {mr:.3}");
+    if !noise_scale.is_empty() {
+        println!(
+            "  whitened σ̂ (corner scatter / detector's covariance): mean {:.3}",
+            noise_scale.iter().sum::<f64>() / noise_scale.len() as f64
+        );
+    }
+    // χ² of (fx, fy, cx, cy) against the truth with the reported covariance, per realisation.
+    if !chi2.is_empty() {
+        let mean = chi2.iter().sum::<f64>() / chi2.len() as f64;
+        println!("  χ² of (fx, fy, cx, cy) vs truth: mean {mean:.2} (4 if honest)");
+    }
 
     // The corners themselves: bias (mean error per corner), noise (spread about it), the detector's σ,
     // and the correlation of the noise between neighbours along a row and along a column.

@@ -27,6 +27,7 @@ fn view() -> impl Strategy<Value = View> {
                 .map(|(x, y, z, u, v)| Correspondence {
                     xyz: Vector3::new(x, y, z),
                     uv: Vector2::new(u, v),
+                    cov: None,
                 })
                 .collect(),
         },

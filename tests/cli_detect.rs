@@ -106,8 +106,22 @@ fn check_image(img: &Value, name: &str, size: [u64; 2], truth: &Truth) -> Vec<St
         let corners = face["corners"].as_array().unwrap();
         assert!(!corners.is_empty(), "face {fname} without corners");
         for c in corners {
-            assert_eq!(keys(c), set(&["row", "col", "xyz", "uv", "sigma_px"]));
-            assert!(c["sigma_px"].as_f64().unwrap() > 0.0);
+            assert_eq!(
+                keys(c),
+                set(&["row", "col", "xyz", "uv", "sigma_px", "cov"])
+            );
+            let sigma = c["sigma_px"].as_f64().unwrap();
+            assert!(sigma > 0.0);
+            // The corner's own covariance [var_u, cov_uv, var_v]: positive definite, and σ is the
+            // root of its mean variance.
+            let cov: Vec<f64> = c["cov"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap())
+                .collect();
+            assert!(cov[0] > 0.0 && cov[0] * cov[2] > cov[1] * cov[1], "{cov:?}");
+            assert!((((cov[0] + cov[2]) / 2.0).sqrt() - sigma).abs() < 1e-9 * sigma.max(1.0));
             let (row, col) = (c["row"].as_u64().unwrap(), c["col"].as_u64().unwrap());
             let xyz: Vec<f64> = c["xyz"]
                 .as_array()

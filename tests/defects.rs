@@ -217,6 +217,7 @@ fn image_size_is_checked_against_points_and_principal_point() {
                 .map(|c| calib::Correspondence {
                     xyz: c.xyz,
                     uv: c.uv - Vector2::new(700.0, 0.0),
+                    cov: c.cov,
                 })
                 .filter(|c| c.uv.x >= 0.0 && c.uv.x <= 579.0)
                 .collect(),

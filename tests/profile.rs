@@ -65,6 +65,7 @@ fn report(camera: &Camera, sigma: f64) -> CalibrationReport {
         rms_px: 0.1,
         rms_reprojection_px: 0.1 * 2f64.sqrt(),
         sigma_px: 0.1,
+        noise_scale: None,
         n_points: 1000,
         n_params: n + 60,
         views: vec![],

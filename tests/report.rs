@@ -226,6 +226,7 @@ fn camera_report(cam: &Camera, views: Vec<ViewReport>) -> CalibrationReport {
         rms_px: 0.0,
         rms_reprojection_px: 0.0,
         sigma_px: 0.3,
+        noise_scale: None,
         n_points: 0,
         n_params: 0,
         views,
@@ -274,6 +275,7 @@ fn residuals_are_the_offsets_put_into_the_observations() {
                 xyz: xyz.into(),
                 uv: uv.into(),
                 face: Some("top".into()),
+                cov: None,
             });
         }
         views.push(RawView {

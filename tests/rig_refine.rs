@@ -264,6 +264,7 @@ fn project_views(built: &Rig, n: usize, sigma_px: f64, seed: u64) -> (Vec<RigVie
                     corner: c,
                     uv,
                     sigma_px: (sigma_px > 0.0).then_some(sigma_px),
+                    cov: None,
                 });
             }
             RigView {

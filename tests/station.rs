@@ -347,6 +347,7 @@ fn held_out_rms_of_focus_change(
         .map(|c| cubecal::calib::Correspondence {
             xyz: c.xyz.into(),
             uv: c.uv.unwrap().into(),
+            cov: None,
         })
         .collect();
     let view = cubecal::calib::View {

@@ -226,6 +226,7 @@ fn predicted_covariance_equals_the_solvers_at_the_solution() {
                         uv[1] + noise.sample(&mut rng),
                     ]
                     .into(),
+                    cov: None,
                 }
             })
             .collect();

@@ -14,11 +14,26 @@
 //! view, with Marquardt's damping updated by Nielsen's rule. The intrinsic blocks are accumulated over
 //! the full 13-vector in fixed-size matrices and mapped to the free parameters once per linearisation.
 //!
+//! ## Each corner's own covariance (generalised least squares)
+//! When every point carries a covariance `Σ_ij` ([`super::Correspondence::cov`], the detector's fit
+//! gives one per corner) and [`SolveOptions::weighting`] is [`Weighting::Covariance`] (the default),
+//! residuals and Jacobians are whitened: with the Cholesky factor `Σ = L Lᵀ`, the solve sees
+//! `r̃ = L⁻¹ r` and `J̃ = L⁻¹ J`, so it minimises `Σ ρ(‖r̃‖)` = `Σ ρ(√(rᵀ Σ⁻¹ r))`. A corner of a
+//! foreshortened face (long, thin fit window, large σ across its short axis) then counts for what its
+//! fit is worth. Everything below (robust loss, outlier rejection, σ̂) works on the whitened
+//! residuals; the robust loss's scale, given in pixels, is divided by the median corner σ
+//! (`√(trace Σ / 2)`), so that it means the same for a typical corner as in the unweighted solve.
+//! A set where only some points carry a covariance is solved unweighted: the two kinds of point
+//! have no common unit.
+//!
 //! ## Uncertainty
-//! At the optimum `σ̂² = Σ r² / (2n − p_total)` and the covariance of the intrinsics is the
-//! corresponding block of `σ̂² (JᵀJ)⁻¹`, which is exactly `σ̂² S⁻¹` with `S` the undamped Schur
-//! complement (`lm_core.rs`). These assume independent, equal-variance corner noise and a correct
-//! model; `tests/calibration.rs` checks the claimed ±2σ coverage over seeded trials.
+//! At the optimum `σ̂² = Σ r̃² / (2n − p_total)` and the covariance of the intrinsics is the
+//! corresponding block of `σ̂² (J̃ᵀJ̃)⁻¹`, which is exactly `σ̂² S⁻¹` with `S` the undamped Schur
+//! complement (`lm_core.rs`). Unweighted (`r̃ = r`), these assume independent, equal-variance corner
+//! noise; weighted, `σ̂` is the ratio of the corners' actual scatter to the scatter the detector
+//! claims ([`Calibration::noise_scale`], 1 when the detector's covariances are right), and scaling by
+//! it keeps the σ honest when they are right only up to a common factor. `tests/calibration.rs`
+//! checks the claimed ±2σ coverage over seeded trials.
 //!
 //! ## Robustness and outliers
 //! An optional robust loss (Huber, Cauchy) is applied by iteratively reweighted least squares.
@@ -41,7 +56,7 @@
 //! `σ√(1 − p/2n)`, and σ̂ estimates exactly that spread, so the rate holds for the residuals tested
 //! (`tests/defects.rs` checks it on seeded synthetic data).
 
-use nalgebra::{DMatrix, DVector, SMatrix, SVector, Vector2};
+use nalgebra::{DMatrix, DVector, Matrix2, SMatrix, SVector, Vector2};
 use serde::{Deserialize, Serialize};
 use tracing::{debug, info};
 
@@ -103,6 +118,21 @@ pub struct SolveOptions {
     pub outlier_sigma: Option<f64>,
     /// Limit on LM iterations (accepted plus rejected steps) per solve.
     pub max_iterations: usize,
+    /// How the points are weighted (see the module docs).
+    #[serde(default)]
+    pub weighting: Weighting,
+}
+
+/// How [`solve`] weights the points.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Weighting {
+    /// By the inverse of each point's own covariance when every point has one (generalised least
+    /// squares); equally otherwise.
+    #[default]
+    Covariance,
+    /// Equally (ordinary least squares): covariances are ignored.
+    Equal,
 }
 
 impl Default for SolveOptions {
@@ -113,6 +143,7 @@ impl Default for SolveOptions {
             loss: Loss::Squared,
             outlier_sigma: None,
             max_iterations: 200,
+            weighting: Weighting::default(),
         }
     }
 }
@@ -146,6 +177,10 @@ pub struct Calibration {
     pub rms_reprojection_px: f64,
     /// Estimated corner noise per coordinate, `√(Σ r² / (2n − p))` px.
     pub sigma_px: f64,
+    /// With the corners weighted by their own covariances: `σ̂` of the whitened residuals,
+    /// `√(Σ rᵀΣ⁻¹r / (2n − p))`, the corners' actual scatter over the scatter their covariances
+    /// claim (≈ 1 when the detector is honest). The reported σ are scaled by it. `None` unweighted.
+    pub noise_scale: Option<f64>,
     /// Names of the free intrinsic parameters, in the order of `covariance`.
     pub free_params: Vec<&'static str>,
     /// Covariance of the free intrinsic parameters.
@@ -163,6 +198,29 @@ pub struct Calibration {
 }
 
 impl Calibration {
+    /// `χ² = eᵀ C⁻¹ e` of the named free parameters' errors `e` = estimate − `truth` (the 13-vector),
+    /// with `C` their reported covariance: χ²-distributed with as many degrees of freedom as names
+    /// when the reported covariance is honest. `None` if a name is not free or `C` is singular.
+    pub fn chi2_against(&self, truth: &[f64; N_INTRINSIC], names: &[&str]) -> Option<f64> {
+        let pos: Vec<usize> = names
+            .iter()
+            .map(|n| self.free_params.iter().position(|f| f == n))
+            .collect::<Option<_>>()?;
+        let full: Vec<usize> = names
+            .iter()
+            .map(|n| PARAM_NAMES.iter().position(|f| f == n))
+            .collect::<Option<_>>()?;
+        let c = DMatrix::from_fn(pos.len(), pos.len(), |r, k| {
+            self.covariance[(pos[r], pos[k])]
+        });
+        let e = DVector::from_iterator(
+            full.len(),
+            full.iter().map(|&k| self.camera.params[k] - truth[k]),
+        );
+        let x = c.cholesky()?.solve(&e);
+        Some(e.dot(&x))
+    }
+
     /// Standard deviations of the estimated intrinsic parameters, by name.
     pub fn std_dev_by_name(&self) -> Vec<(&'static str, f64)> {
         (0..N_INTRINSIC)
@@ -296,8 +354,54 @@ struct Problem<'a> {
     views: &'a [View],
     /// `active[i][j]`: point j of view i is used.
     active: Vec<Vec<bool>>,
+    /// In whitened units when `whiten` is set.
     loss: Loss,
     map: ParamMap,
+    /// `whiten[i][j] = L⁻¹` with `Σ_ij = L Lᵀ`, when the points are weighted by their covariances.
+    whiten: Option<Vec<Vec<Matrix2<f64>>>>,
+}
+
+/// `L⁻¹` for the Cholesky factor `L` of a symmetric positive definite 2×2 matrix (`None` otherwise).
+fn inverse_cholesky(c: &Matrix2<f64>) -> Option<Matrix2<f64>> {
+    let a = c[(0, 0)].sqrt();
+    let b = c[(1, 0)] / a;
+    let d = (c[(1, 1)] - b * b).sqrt();
+    let w = Matrix2::new(1.0 / a, 0.0, -b / (a * d), 1.0 / d);
+    (a > 0.0 && d > 0.0 && w.iter().all(|x| x.is_finite())).then_some(w)
+}
+
+/// The whitening matrices of every point and the median corner σ (px), when `weighting` asks for
+/// them and every point has a covariance.
+fn whitening(views: &[View], weighting: Weighting) -> Option<(Vec<Vec<Matrix2<f64>>>, f64)> {
+    if weighting == Weighting::Equal {
+        return None;
+    }
+    let mut sigmas = Vec::new();
+    let whiten = views
+        .iter()
+        .map(|v| {
+            v.points
+                .iter()
+                .map(|c| {
+                    let cov = c.cov?;
+                    sigmas.push((cov.trace() / 2.0).sqrt());
+                    inverse_cholesky(&cov)
+                })
+                .collect::<Option<Vec<_>>>()
+        })
+        .collect::<Option<Vec<_>>>()?;
+    sigmas.sort_by(f64::total_cmp);
+    let median = *sigmas.get(sigmas.len() / 2)?;
+    (median > 0.0 && median.is_finite()).then_some((whiten, median))
+}
+
+/// A loss whose scale (px) is expressed in units of `sigma` px.
+fn loss_in_units(loss: Loss, sigma: f64) -> Loss {
+    match loss {
+        Loss::Squared => Loss::Squared,
+        Loss::Huber(c) => Loss::Huber(c / sigma),
+        Loss::Cauchy(c) => Loss::Cauchy(c / sigma),
+    }
 }
 
 /// The camera and the per-view poses.
@@ -327,6 +431,15 @@ fn residual_jacobians(
 }
 
 impl Problem<'_> {
+    /// Point `j` of view `i`'s residual in the solve's units (whitened when weighted).
+    #[inline]
+    fn white(&self, i: usize, j: usize, r: Vector2<f64>) -> Vector2<f64> {
+        match &self.whiten {
+            Some(w) => w[i][j] * r,
+            None => r,
+        }
+    }
+
     fn n_active(&self) -> usize {
         self.active
             .iter()
@@ -352,7 +465,7 @@ impl BlockProblem for Problem<'_> {
                     continue;
                 }
                 let uv = s.camera.project(&s.poses[i], &c.xyz).ok()?;
-                cost += self.loss.rho((uv - c.uv).norm());
+                cost += self.loss.rho(self.white(i, j, uv - c.uv).norm());
             }
         }
         cost.is_finite().then_some(cost)
@@ -374,12 +487,19 @@ impl BlockProblem for Problem<'_> {
                 if !self.active[i][j] {
                     continue;
                 }
-                let (r, j_int, j_pose) = residual_jacobians(&s.camera, pose, c).map_err(|_| {
-                    CalibError::Degenerate {
-                        reason: format!("point {j} moved behind the camera during refinement"),
-                    }
-                    .in_view(&view.name)
-                })?;
+                let (mut r, mut j_int, mut j_pose) = residual_jacobians(&s.camera, pose, c)
+                    .map_err(|_| {
+                        CalibError::Degenerate {
+                            reason: format!("point {j} moved behind the camera during refinement"),
+                        }
+                        .in_view(&view.name)
+                    })?;
+                if let Some(wh) = &self.whiten {
+                    let l = &wh[i][j];
+                    r = l * r;
+                    j_int = l * j_int;
+                    j_pose = l * j_pose;
+                }
                 let wgt = n.add_cost(self.loss, r.norm());
                 // Rank-2 updates of the lower triangles (symmetrised once at the end).
                 for row in 0..2 {
@@ -470,11 +590,22 @@ pub fn solve_from(
         .clone()
         .with_distortion(opts.model, &init.camera.distortion_coefficients());
     apply_fixes(&mut camera, &opts.fix);
+    let (whiten, loss) = match whitening(views, opts.weighting) {
+        Some((w, sigma)) => {
+            info!(
+                median_corner_sigma_px = sigma,
+                "points weighted by their own covariances"
+            );
+            (Some(w), loss_in_units(opts.loss, sigma))
+        }
+        None => (None, opts.loss),
+    };
     let mut problem = Problem {
         views,
         active: views.iter().map(|v| vec![true; v.points.len()]).collect(),
-        loss: opts.loss,
+        loss,
         map: ParamMap::new(opts.model, &opts.fix),
+        whiten,
     };
     let mut state = State {
         camera,
@@ -540,7 +671,7 @@ fn outlier_round(
         let mut row = Vec::with_capacity(v.points.len());
         for (j, c) in v.points.iter().enumerate() {
             let r = match camera.project(&poses[i], &c.xyz) {
-                Ok(uv) => uv - c.uv,
+                Ok(uv) => problem.white(i, j, uv - c.uv),
                 // A rejected point may lie anywhere; an active one must be in front of the camera.
                 Err(_) if !problem.active[i][j] => {
                     row.push(None);
@@ -624,6 +755,8 @@ fn finish(
     let (std_dev, estimated) = map.std_dev(&marginal.covariance);
 
     let mut views = Vec::with_capacity(problem.views.len());
+    // Σ r² in pixels (the normal equations' are whitened when weighted).
+    let mut ssr_px = 0.0;
     for (i, v) in problem.views.iter().enumerate() {
         let mut ssr = 0.0;
         let mut count = 0;
@@ -638,6 +771,7 @@ fn finish(
                 count += 1;
             }
         }
+        ssr_px += ssr;
         let (rotation_std_rad, translation_std) = marginal.pose_std(&n, i);
         views.push(ViewResult {
             name: v.name.clone(),
@@ -653,12 +787,21 @@ fn finish(
             translation_std,
         });
     }
+    let (ssr, sigma_px, noise_scale) = match problem.whiten {
+        None => (n.ssr, marginal.sigma2.sqrt(), None),
+        Some(_) => (
+            ssr_px,
+            (ssr_px / (m_res - n.n_params()) as f64).sqrt(),
+            Some(marginal.sigma2.sqrt()),
+        ),
+    };
     Ok(Calibration {
         camera,
         views,
-        rms_px: (n.ssr / m_res as f64).sqrt(),
-        rms_reprojection_px: (n.ssr / n_points as f64).sqrt(),
-        sigma_px: marginal.sigma2.sqrt(),
+        rms_px: (ssr / m_res as f64).sqrt(),
+        rms_reprojection_px: (ssr / n_points as f64).sqrt(),
+        sigma_px,
+        noise_scale,
         free_params: map.names.clone(),
         covariance: marginal.covariance,
         std_dev,
@@ -734,6 +877,8 @@ pub fn view_information(
             active: vec![vec![true; views[i].points.len()]],
             loss: Loss::Squared,
             map: ParamMap::new(model, fix),
+            // Predicted corners carry no covariance of their own: equal weights.
+            whiten: None,
         };
         let ni = one.linearise(&State {
             camera: camera.clone(),
@@ -778,6 +923,7 @@ mod tests {
         let c = Correspondence {
             xyz: Vector3::new(120.0, -80.0, 35.0),
             uv: Vector2::new(600.0, 400.0),
+            cov: None,
         };
         let (_, _, j_pose) = residual_jacobians(&cam, &pose, &c).unwrap();
         for k in 0..6 {

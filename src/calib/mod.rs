@@ -10,7 +10,7 @@
 //! tying (aspect ratio) and the marginal covariance of the intrinsics; generic least-squares crates
 //! (`levenberg-marquardt`, `argmin`) offer dense normal equations over an opaque parameter vector only.
 
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix2, Vector2, Vector3};
 use serde::Serialize;
 
 pub mod determined;
@@ -28,7 +28,7 @@ pub use determined::{
     undetermined_parameters,
 };
 pub use lm::{
-    Calibration, Fix, SolveOptions, ViewResult, predicted_covariance, solve, solve_from,
+    Calibration, Fix, SolveOptions, ViewResult, Weighting, predicted_covariance, solve, solve_from,
     view_information,
 };
 pub use lm_core::{Loss, Termination};
@@ -42,6 +42,24 @@ pub use rigrefine::{
 pub struct Correspondence {
     pub xyz: Vector3<f64>,
     pub uv: Vector2<f64>,
+    /// Covariance of `uv` (px²), when the detector gives one: the solve then weights the point by
+    /// its inverse (see [`Weighting`]).
+    pub cov: Option<Matrix2<f64>>,
+}
+
+impl Correspondence {
+    /// A correspondence with no covariance of its own (equal weights).
+    pub fn new(xyz: Vector3<f64>, uv: Vector2<f64>) -> Correspondence {
+        Correspondence { xyz, uv, cov: None }
+    }
+}
+
+/// Whether a covariance is usable as a point's weight: finite, symmetric, positive definite.
+pub fn valid_covariance(c: &Matrix2<f64>) -> bool {
+    c.iter().all(|x| x.is_finite())
+        && (c[(0, 1)] - c[(1, 0)]).abs() <= 1e-9 * (c[(0, 0)] + c[(1, 1)]).abs()
+        && c[(0, 0)] > 0.0
+        && c[(0, 0)] * c[(1, 1)] - c[(0, 1)] * c[(1, 0)] > 0.0
 }
 
 /// All correspondences seen in one image.
@@ -239,6 +257,20 @@ pub fn validate_views(views: &[View]) -> Result<(), CalibError> {
                 return Err(CalibError::NonFinite {
                     what: "image point".into(),
                     index: i,
+                }
+                .in_view(&v.name));
+            }
+            if let Some(cov) = &c.cov
+                && !valid_covariance(cov)
+            {
+                return Err(CalibError::InvalidOption {
+                    reason: format!(
+                        "point {i}: covariance [[{}, {}], [{}, {}]] px² is not symmetric positive definite",
+                        cov[(0, 0)],
+                        cov[(0, 1)],
+                        cov[(1, 0)],
+                        cov[(1, 1)]
+                    ),
                 }
                 .in_view(&v.name));
             }

@@ -17,7 +17,7 @@
 
 use std::path::{Path, PathBuf};
 
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix2, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::calib::{Correspondence, View};
@@ -61,6 +61,21 @@ pub struct RawPoint {
     /// The rig face the point lies on (written by the station; optional on input).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub face: Option<String>,
+    /// Covariance of `uv`, `[var_u, cov_uv, var_v]` (px²), from the detector's fit (written by the
+    /// station and `detect --json`; optional on input, files without it load as before). When every
+    /// point has one, the solve weights each point by its inverse.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cov: Option<[f64; 3]>,
+}
+
+/// A 2×2 covariance as the files store it: `[var_u, cov_uv, var_v]`.
+pub fn cov_to_array(c: &Matrix2<f64>) -> [f64; 3] {
+    [c[(0, 0)], 0.5 * (c[(0, 1)] + c[(1, 0)]), c[(1, 1)]]
+}
+
+/// The 2×2 covariance of a file's `[var_u, cov_uv, var_v]`.
+pub fn cov_from_array(c: [f64; 3]) -> Matrix2<f64> {
+    Matrix2::new(c[0], c[1], c[1], c[2])
 }
 
 /// One view as stored in the file.
@@ -170,9 +185,19 @@ impl Observations {
                         "views[{i}] ('{name}').points[{j}]: value is not finite"
                     )));
                 }
+                let cov = p.cov.map(cov_from_array);
+                if let Some(c) = &cov
+                    && !super::valid_covariance(c)
+                {
+                    return Err(invalid(format!(
+                        "views[{i}] ('{name}').points[{j}].cov: {:?} is not a covariance [var_u, cov_uv, var_v] (finite, var_u > 0, var_u·var_v > cov_uv²)",
+                        p.cov.unwrap_or_default()
+                    )));
+                }
                 points.push(Correspondence {
                     xyz: Vector3::from(p.xyz),
                     uv: Vector2::from(p.uv),
+                    cov,
                 });
             }
             views.push(View { name, points });
@@ -199,6 +224,7 @@ impl Observations {
                             xyz: c.xyz.into(),
                             uv: c.uv.into(),
                             face: None,
+                            cov: c.cov.as_ref().map(cov_to_array),
                         })
                         .collect(),
                     frame: None,
@@ -228,6 +254,8 @@ struct DetectedFace {
 struct DetectedCorner {
     xyz: [f64; 3],
     uv: [f64; 2],
+    #[serde(default)]
+    cov: Option<[f64; 3]>,
 }
 
 /// Views from detections: one per image with labelled faces, named by the image's file stem (its
@@ -269,6 +297,7 @@ fn from_detections(
                     xyz: c.xyz,
                     uv: c.uv,
                     face: Some(f.face.clone()),
+                    cov: c.cov,
                 })
             })
             .collect();
@@ -295,7 +324,7 @@ fn from_detections(
 fn warn_unknown_keys(value: &serde_json::Value, path: &Path) {
     const TOP: &[&str] = &["image_size", "views"];
     const VIEW: &[&str] = &["name", "points", "frame", "held_out"];
-    const POINT: &[&str] = &["xyz", "uv", "face"];
+    const POINT: &[&str] = &["xyz", "uv", "face", "cov"];
     let mut unknown = Vec::new();
     let mut check = |v: &serde_json::Value, known: &[&str], at: &dyn Fn(&str) -> String| {
         if let Some(map) = v.as_object() {
@@ -347,6 +376,36 @@ mod tests {
         let back = serde_json::to_string(&o.to_raw()).unwrap();
         let o2 = parse(&back).unwrap();
         assert_eq!(o2.views, o.views);
+        assert_eq!(o.views[0].points[0].cov, None);
+    }
+
+    #[test]
+    fn covariances_round_trip_and_bad_ones_are_named() {
+        let text = r#"{"image_size": [640, 480], "views": [{"name": "a", "points": [{"xyz": [1, 2, 3], "uv": [4.5, 5.5], "cov": [0.0004, -0.0001, 0.0009]}, {"xyz": [1, 2, 4], "uv": [4.5, 6.5]}]}]}"#;
+        let o = parse(text).unwrap();
+        assert_eq!(
+            o.views[0].points[0].cov,
+            Some(Matrix2::new(0.0004, -0.0001, -0.0001, 0.0009))
+        );
+        assert_eq!(o.views[0].points[1].cov, None);
+        let back = serde_json::to_string(&o.to_raw()).unwrap();
+        assert!(back.contains("\"cov\":[0.0004,-0.0001,0.0009]"), "{back}");
+        assert_eq!(parse(&back).unwrap().views, o.views);
+        // `detect --json` output carries it too.
+        let det = r#"[{"image": "f.png", "width": 640, "height": 480, "faces": [{"face": "top", "corners": [{"row": 0, "col": 0, "xyz": [1, 2, 3], "uv": [4.5, 5.5], "sigma_px": 0.02, "cov": [0.0004, 0.0, 0.0004]}]}]}]"#;
+        let o = parse(det).unwrap();
+        assert_eq!(
+            o.views[0].points[0].cov,
+            Some(Matrix2::from_diagonal_element(0.0004))
+        );
+        // Not positive definite (|cov_uv| too large), negative.
+        for bad in ["[0.0004, 0.001, 0.0009]", "[-1, 0, 1]"] {
+            let text = format!(
+                r#"{{"image_size": [640, 480], "views": [{{"name": "a", "points": [{{"xyz": [1, 2, 3], "uv": [4.5, 5.5], "cov": {bad}}}]}}]}}"#
+            );
+            let e = parse(&text).unwrap_err().to_string();
+            assert!(e.contains("views[0] ('a').points[0].cov"), "{bad}: {e}");
+        }
     }
 
     #[test]

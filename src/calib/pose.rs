@@ -193,6 +193,7 @@ mod tests {
                 .map(|x| Correspondence {
                     xyz: *x,
                     uv: cam.project(pose, x).unwrap(),
+                    cov: None,
                 })
                 .collect(),
         }

@@ -48,7 +48,7 @@ pub struct CalibrationReport {
     #[serde(default)]
     pub free_params: Vec<String>,
     /// Covariance of the estimated intrinsic parameters (row-major, `free_params` order), scaled by
-    /// `sigma_px²`.
+    /// `sigma_px²` (by `noise_scale²` when the corners are weighted by their covariances).
     #[serde(default)]
     pub covariance: Vec<Vec<f64>>,
     /// RMS of residual components `√(Σr²/2n)` (px).
@@ -57,6 +57,10 @@ pub struct CalibrationReport {
     pub rms_reprojection_px: f64,
     /// Estimated corner noise per coordinate `√(Σr²/(2n − p))` (px).
     pub sigma_px: f64,
+    /// With the corners weighted by their own covariances: the whitened residuals' `σ̂`, the corners'
+    /// scatter over what their covariances claim (≈ 1 when the detector is honest).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_scale: Option<f64>,
     pub n_points: usize,
     pub n_params: usize,
     pub views: Vec<ViewReport>,
@@ -95,6 +99,7 @@ impl From<&Calibration> for CalibrationReport {
             rms_px: c.rms_px,
             rms_reprojection_px: c.rms_reprojection_px,
             sigma_px: c.sigma_px,
+            noise_scale: c.noise_scale,
             n_points: c.n_points,
             n_params: c.n_params,
             views: c

@@ -67,6 +67,8 @@ pub struct RigPoint {
     /// The detector's own standard deviation of each coordinate (px), when it gives one: the yardstick
     /// for whether the refined rig explains the corners (see [`RigRefineOptions::max_sigma_ratio`]).
     pub sigma_px: Option<f64>,
+    /// The detector's covariance of `uv` (px²), when it gives one; carried to [`RigView::to_view`].
+    pub cov: Option<nalgebra::Matrix2<f64>>,
 }
 
 /// The labelled corners of one image.
@@ -98,7 +100,8 @@ impl RigView {
                     .map(|&(corner, _)| RigPoint {
                         corner,
                         uv: p.uv,
-                        sigma_px: None,
+                        sigma_px: p.cov.map(|c| (c.trace() / 2.0).sqrt()),
+                        cov: p.cov,
                     })
                     .ok_or_else(|| {
                         CalibError::InvalidOption {
@@ -125,7 +128,11 @@ impl RigView {
             .enumerate()
             .map(|(j, p)| {
                 rig.corner_xyz(p.corner.face, p.corner.row, p.corner.col)
-                    .map(|xyz| Correspondence { xyz, uv: p.uv })
+                    .map(|xyz| Correspondence {
+                        xyz,
+                        uv: p.uv,
+                        cov: p.cov,
+                    })
                     .ok_or_else(|| {
                         CalibError::InvalidOption {
                             reason: format!(
@@ -1043,6 +1050,7 @@ fn finish(
         rms_px: (n.ssr / m_res as f64).sqrt(),
         rms_reprojection_px: (n.ssr / n_points as f64).sqrt(),
         sigma_px: marginal.sigma2.sqrt(),
+        noise_scale: None,
         free_params: map.names.clone(),
         covariance,
         std_dev,
@@ -1172,6 +1180,7 @@ mod tests {
                     corner,
                     uv: Vector2::new(k as f64, 0.5),
                     sigma_px: None,
+                    cov: None,
                 })
                 .collect(),
         };

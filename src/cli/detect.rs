@@ -13,7 +13,7 @@ use cubecal::detect::{self, CornerFinder, FrameDetection, overlay};
 use cubecal::exit;
 use cubecal::rig::Rig;
 use image::GrayImage;
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix2, Vector2, Vector3};
 use serde::Serialize;
 
 use super::solve::count;
@@ -100,6 +100,13 @@ struct CornerJson {
     uv: Vector2<f64>,
     /// Estimated standard deviation of each coordinate of `uv` (px), from the corner's fit.
     sigma_px: f64,
+    /// Covariance of `uv` from the corner's fit, `[var_u, cov_uv, var_v]` (px²).
+    #[serde(serialize_with = "cov_array")]
+    cov: Matrix2<f64>,
+}
+
+fn cov_array<S: serde::Serializer>(c: &Matrix2<f64>, s: S) -> Result<S::Ok, S::Error> {
+    cubecal::calib::observations::cov_to_array(c).serialize(s)
 }
 
 fn xyz_array<S: serde::Serializer>(v: &Vector3<f64>, s: S) -> Result<S::Ok, S::Error> {

@@ -7,7 +7,7 @@ use clap::ValueEnum;
 
 use cubecal::calib::observations::Observations;
 use cubecal::calib::report::CalibrationReport;
-use cubecal::calib::{self, Fix, Loss, SolveOptions, Termination, UndeterminedParam};
+use cubecal::calib::{self, Fix, Loss, SolveOptions, Termination, UndeterminedParam, Weighting};
 use cubecal::camera::DistortionModel;
 use cubecal::exit;
 
@@ -67,6 +67,10 @@ pub struct SolveArgs {
     /// Iteration limit of the refinement.
     #[arg(long, default_value_t = 200)]
     pub max_iterations: usize,
+    /// Weight every point alike, ignoring the points' `cov` (by default, when every point has a
+    /// covariance, each is weighted by its inverse).
+    #[arg(long)]
+    pub unweighted: bool,
 }
 
 fn parse_positive(s: &str) -> Result<f64, String> {
@@ -118,6 +122,11 @@ impl SolveArgs {
             loss: self.loss.unwrap_or_default(),
             outlier_sigma: self.reject_outliers,
             max_iterations: self.max_iterations,
+            weighting: if self.unweighted {
+                Weighting::Equal
+            } else {
+                Weighting::Covariance
+            },
         }
     }
 }

@@ -708,6 +708,7 @@ fn detect_face(
                 xyz: face.corner_xyz(row, col),
                 uv: fit.uv,
                 sigma_px: fit.sigma_px,
+                cov: fit.cov,
             });
         }
     }
@@ -720,5 +721,6 @@ fn detect_face(
         corners,
         colour_contrast: contrast.iter().sum::<f64>() / contrast.len().max(1) as f64,
         ambiguous_pose: None,
+        identity: None,
     })
 }

@@ -31,9 +31,30 @@ use super::refine::{self, Refined};
 pub struct Fitted {
     pub uv: Vector2<f64>,
     pub sigma_px: f64,
+    /// Covariance of `uv` (px²), from the fit ([`Refined::cov`]); `sigma_px` is `√(trace/2)` of it.
+    pub cov: Matrix2<f64>,
 }
 
 impl Fitted {
+    /// A position with the same σ along both axes, uncorrelated (`σ` NaN or infinite for a position
+    /// that was not measured).
+    pub fn isotropic(uv: Vector2<f64>, sigma_px: f64) -> Fitted {
+        Fitted {
+            uv,
+            sigma_px,
+            cov: Matrix2::from_diagonal_element(sigma_px * sigma_px),
+        }
+    }
+
+    /// The fitted corner of a window fit.
+    pub fn from_refined(r: &Refined) -> Fitted {
+        Fitted {
+            uv: r.uv,
+            sigma_px: r.sigma_px,
+            cov: r.cov,
+        }
+    }
+
     /// Whether the position was measured by a corner fit. A grid's lattice position that lies inside
     /// the image but so near its border that not even the smallest corner window fits
     /// ([`refine::MIN_BORDER_HALF_PX`]) is kept at its predicted position with an infinite σ: it
@@ -273,10 +294,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
             if let Some(i) = grid.get(r, c) {
                 raw.insert(
                     (r as i32, c as i32),
-                    Fitted {
-                        uv: corners[i].uv,
-                        sigma_px: f64::NAN,
-                    },
+                    Fitted::isotropic(corners[i].uv, f64::NAN),
                 );
             }
         }
@@ -298,13 +316,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
                 residuals.push(fit.residual);
                 contrasts.push(fit.contrast);
                 shifts.insert((r, c), fit.curvature_shift);
-                cells.insert(
-                    (r, c),
-                    Fitted {
-                        uv: fit.uv,
-                        sigma_px: fit.sigma_px,
-                    },
-                );
+                cells.insert((r, c), Fitted::from_refined(&fit));
             }
             None => dropped += 1,
         }
@@ -362,13 +374,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
             }
             if let Some(f) = fitted.filter(like_grid) {
                 shifts.insert((r, c), f.curvature_shift);
-                cells.insert(
-                    (r, c),
-                    Fitted {
-                        uv: f.uv,
-                        sigma_px: f.sigma_px,
-                    },
-                );
+                cells.insert((r, c), Fitted::from_refined(&f));
                 tracing::trace!(r, c, ?p, uv = ?f.uv, contrast = f.contrast, residual = f.residual, width = f.edge_width, "corner recovered");
                 recovered += 1;
                 added = true;
@@ -417,13 +423,7 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
         }
     }
     for (key, uv) in at_border {
-        cells.insert(
-            key,
-            Fitted {
-                uv,
-                sigma_px: f64::INFINITY,
-            },
-        );
+        cells.insert(key, Fitted::isotropic(uv, f64::INFINITY));
     }
     let rows = (r1 - r0 + 1) as usize;
     let cols = (c1 - c0 + 1) as usize;
@@ -489,7 +489,7 @@ mod tests {
         for r in 0..7 {
             for c in 0..7 {
                 let uv = f(r, c);
-                cells.insert((r, c), Fitted { uv, sigma_px: 0.1 });
+                cells.insert((r, c), Fitted::isotropic(uv, 0.1));
             }
         }
         cells

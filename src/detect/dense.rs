@@ -1,6 +1,6 @@
 //! A complete grid as a dense array of image points, and the relabellings that keep its handedness.
 
-use nalgebra::Vector2;
+use nalgebra::{Matrix2, Vector2};
 
 /// A complete grid as a dense `rows × cols` array of image points (with their σ), handedness-corrected.
 #[derive(Debug, Clone)]
@@ -9,6 +9,8 @@ pub(super) struct Dense {
     pub(super) cols: usize,
     pub(super) uv: Vec<Vector2<f64>>,
     pub(super) sigma: Vec<f64>,
+    /// Each point's covariance (px²).
+    pub(super) cov: Vec<Matrix2<f64>>,
 }
 
 impl Dense {
@@ -25,11 +27,13 @@ impl Dense {
     ) -> Dense {
         let mut uv = Vec::with_capacity(self.uv.len());
         let mut sigma = Vec::with_capacity(self.uv.len());
+        let mut cov = Vec::with_capacity(self.uv.len());
         for r in 0..rows {
             for c in 0..cols {
                 let (r0, c0) = source(r, c);
                 uv.push(self.uv[r0 * self.cols + c0]);
                 sigma.push(self.sigma[r0 * self.cols + c0]);
+                cov.push(self.cov[r0 * self.cols + c0]);
             }
         }
         Dense {
@@ -37,6 +41,7 @@ impl Dense {
             cols,
             uv,
             sigma,
+            cov,
         }
     }
 

@@ -423,6 +423,7 @@ mod tests {
             rows: rows.count(),
             cols: cols.count(),
             sigma: vec![0.05; uv.len()],
+            cov: vec![nalgebra::Matrix2::from_diagonal_element(0.0025); uv.len()],
             uv,
         }
     }

@@ -2,7 +2,7 @@
 //! (`extent`, `identity`, [`super::place`]): labelled faces and corners, rejections
 //! with the grid they concern, and the colour contrast every orientation test holds squares to.
 
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix2, Vector2, Vector3};
 
 use super::dense::Dense;
 
@@ -16,8 +16,20 @@ pub struct LabelledCorner {
     pub col: usize,
     pub xyz: Vector3<f64>,
     pub uv: Vector2<f64>,
-    /// Estimated standard deviation of each coordinate of `uv` (px), from the refinement fit.
+    /// Estimated standard deviation of each coordinate of `uv` (px), from the refinement fit:
+    /// `√(trace/2)` of `cov`.
     pub sigma_px: f64,
+    /// Covariance of `uv` (px²) from the refinement fit: the fit's own estimator covariance, scaled
+    /// by the residual noise of its window ([`super::refine::Refined::cov`]).
+    pub cov: Matrix2<f64>,
+}
+
+impl LabelledCorner {
+    /// `cov` when it is usable as the corner's weight (finite, positive definite): what
+    /// [`crate::calib::Correspondence::cov`] takes.
+    pub fn covariance(&self) -> Option<Matrix2<f64>> {
+        crate::calib::valid_covariance(&self.cov).then_some(self.cov)
+    }
 }
 
 /// A face found in the frame.

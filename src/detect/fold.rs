@@ -517,12 +517,7 @@ mod tests {
         let n = cols.len();
         let cells = (0..rows)
             .flat_map(|r| cols.clone().map(move |c| (r, c)))
-            .map(|(r, c)| {
-                Some(Fitted {
-                    uv: at(r, c),
-                    sigma_px: 0.05,
-                })
-            })
+            .map(|(r, c)| Some(Fitted::isotropic(at(r, c), 0.05)))
             .collect();
         Completed {
             rows,

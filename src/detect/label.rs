@@ -72,6 +72,7 @@ pub fn label(
             cols: g.cols,
             uv: g.cells.iter().flatten().map(|f| f.uv).collect(),
             sigma: g.cells.iter().flatten().map(|f| f.sigma_px).collect(),
+            cov: g.cells.iter().flatten().map(|f| f.cov).collect(),
         };
         if dense.handedness() > 0.0 {
             dense = dense.transposed();

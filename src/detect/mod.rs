@@ -107,6 +107,7 @@ impl FrameDetection {
                 .map(|c| crate::calib::Correspondence {
                     xyz: c.xyz,
                     uv: c.uv,
+                    cov: c.covariance(),
                 })
                 .collect(),
         }
@@ -134,6 +135,7 @@ impl FrameDetection {
                         },
                         uv: c.uv,
                         sigma_px: c.sigma_px.is_finite().then_some(c.sigma_px),
+                        cov: c.covariance(),
                     })
                 })
                 .collect(),

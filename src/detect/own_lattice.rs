@@ -100,13 +100,7 @@ pub fn refit_on_own_lattice(
             };
             match refine::refine_near_border(img, c.uv, a, b) {
                 Ok(f) => {
-                    fits.insert(
-                        (r, cc),
-                        Fitted {
-                            uv: f.uv,
-                            sigma_px: f.sigma_px,
-                        },
-                    );
+                    fits.insert((r, cc), Fitted::from_refined(&f));
                     shifts.insert((r, cc), f.curvature_shift);
                 }
                 Err(why) => {
@@ -130,6 +124,7 @@ pub fn refit_on_own_lattice(
             );
             c.uv = f.uv + shift * kappa;
             c.sigma_px = f.sigma_px;
+            c.cov = f.cov;
             out.refitted += 1;
         }
     }
@@ -156,10 +151,10 @@ mod tests {
             cols,
             cells: (0..rows * cols)
                 .map(|i| {
-                    Some(Fitted {
-                        uv: Vector2::new(10.0 * (i % cols) as f64, 10.0 * (i / cols) as f64),
-                        sigma_px: 0.01,
-                    })
+                    Some(Fitted::isotropic(
+                        Vector2::new(10.0 * (i % cols) as f64, 10.0 * (i / cols) as f64),
+                        0.01,
+                    ))
                 })
                 .collect(),
             dropped: 0,
@@ -179,6 +174,7 @@ mod tests {
                     xyz: Vector3::zeros(),
                     uv: grid.get(row, col).map(|f| f.uv).unwrap_or_default(),
                     sigma_px: 0.01,
+                    cov: nalgebra::Matrix2::from_diagonal_element(1e-4),
                 })
                 .collect(),
             colour_contrast: 100.0,

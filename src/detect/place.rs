@@ -71,6 +71,7 @@ struct GridCorner {
     c: usize,
     uv: Vector2<f64>,
     sigma_px: f64,
+    cov: nalgebra::Matrix2<f64>,
 }
 
 /// A grid that could not be labelled as a whole face, with the reason it was not.
@@ -95,6 +96,7 @@ impl Partial {
                     c,
                     uv: f.uv,
                     sigma_px: f.sigma_px,
+                    cov: f.cov,
                 })
             })
             .collect();
@@ -521,6 +523,7 @@ impl Partial {
             rows: 3,
             cols: best.1,
             sigma: vec![0.0; uv.len()],
+            cov: vec![nalgebra::Matrix2::zeros(); uv.len()],
             uv,
         };
         let b = look_beyond(img, &lines, Side::FirstRow);
@@ -695,6 +698,7 @@ fn placed_corners(rig: &Rig, p: &Partial, pl: &Placement) -> Vec<LabelledCorner>
                 xyz: face.corner_xyz(r, c),
                 uv: g.uv,
                 sigma_px: g.sigma_px,
+                cov: g.cov,
             }
         })
         .collect()

@@ -161,6 +161,9 @@ pub struct Refined {
     /// Estimated standard deviation of each coordinate of `uv`, px (√ of the mean of the two
     /// variances of the fit's covariance).
     pub sigma_px: f64,
+    /// Covariance of `uv` (px²): the fit's `(JᵀJ)⁻¹` position block scaled by the window's residual
+    /// noise (see the module docs). `sigma_px` is `√(trace/2)` of it.
+    pub cov: Matrix2<f64>,
     /// Fitted half-contrast |h| (grey levels).
     pub contrast: f64,
     /// Residual RMS of the fit (grey levels).
@@ -983,6 +986,7 @@ fn refine_in(
     Ok(Refined {
         uv,
         sigma_px,
+        cov: cov_c,
         contrast,
         residual,
         edge_width: p[4],
@@ -1124,6 +1128,8 @@ mod tests {
         let noise = Normal::new(0.0, 5.0).unwrap();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         let (mut sq, mut sigma, mut n) = (0.0, 0.0, 0.0);
+        // And the 2×2 covariance, not only its trace: eᵀ Σ⁻¹ e averages 2 when Σ is the scatter's.
+        let mut mahalanobis = 0.0;
         for _ in 0..60 {
             let img = GrayImage::from_fn(61, 61, |x, y| {
                 let v = f64::from(clean.get_pixel(x, y).0[0]) * 0.27 + 90.0;
@@ -1132,11 +1138,17 @@ mod tests {
             let r = refine(&img, Vector2::new(30.0, 30.0), a, b).unwrap();
             sq += (r.uv - c).norm_squared();
             sigma += r.sigma_px;
+            assert!((r.cov.trace() / 2.0).sqrt() - r.sigma_px < 1e-12);
+            let e = r.uv - c;
+            mahalanobis += e.dot(&(r.cov.try_inverse().unwrap() * e));
             n += 1.0;
         }
         // RMS of the 2-D error against √2 × the mean per-coordinate σ.
         let ratio = (sq / n).sqrt() / (std::f64::consts::SQRT_2 * sigma / n);
         assert!((0.75..1.3).contains(&ratio), "RMS / (√2 σ) = {ratio}");
+        // The mean of 60 χ²₂ draws has a standard deviation of 0.26; σ itself is ~10 % loose.
+        let m = mahalanobis / n;
+        assert!((1.2..3.0).contains(&m), "mean eᵀΣ⁻¹e = {m}");
     }
 
     #[test]

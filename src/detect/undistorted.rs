@@ -148,6 +148,7 @@ pub fn refine_with_camera(
                 Ok(f) => {
                     corner.uv = f.uv;
                     corner.sigma_px = f.sigma_px;
+                    corner.cov = f.cov;
                     out.refitted += 1;
                 }
                 Err(why) => {

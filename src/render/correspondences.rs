@@ -149,7 +149,7 @@ pub fn cube_scenario(camera: &Camera, side_mm: f64, n_views: usize, seed: u64) -
                 && uv.x < f64::from(w) - 2.5
                 && uv.y < f64::from(h) - 2.5
             {
-                corr.push(Correspondence { xyz: *p, uv });
+                corr.push(Correspondence::new(*p, uv));
             }
         }
         // Keep only poses seeing nearly all of the cube (the three faces are all visible by design).
@@ -191,6 +191,7 @@ pub fn add_noise(views: &[View], sigma_px: f64, seed: u64) -> Vec<View> {
                 .map(|c| Correspondence {
                     xyz: c.xyz,
                     uv: c.uv + Vector2::new(normal.sample(&mut rng), normal.sample(&mut rng)),
+                    cov: None,
                 })
                 .collect(),
         })

@@ -53,6 +53,7 @@ pub fn detection_from_view(view: &RawView, rig: &Rig, width: u32, height: u32) -
             xyz: Vector3::from(p.xyz),
             uv: Vector2::from(p.uv),
             sigma_px: 0.0,
+            cov: nalgebra::Matrix2::zeros(),
         };
         match faces.iter_mut().find(|f| f.face == fi) {
             Some(f) => f.corners.push(corner),

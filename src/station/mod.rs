@@ -680,6 +680,7 @@ fn examine_frames(
             points.push(Correspondence {
                 xyz: c.xyz,
                 uv: c.uv,
+                cov: c.covariance(),
             });
             faces.push(face_name.clone());
         }
@@ -787,6 +788,7 @@ fn solve_and_judge(
                             xyz: c.xyz.into(),
                             uv: c.uv.into(),
                             face: Some(f.clone()),
+                            cov: c.cov.as_ref().map(crate::calib::observations::cov_to_array),
                         })
                         .collect(),
                     frame: frame.clone(),

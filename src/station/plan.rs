@@ -176,6 +176,7 @@ impl Planner {
                 points.push(Correspondence {
                     xyz: Vector3::from(c.xyz),
                     uv: uv.into(),
+                    cov: None,
                 });
             }
         }

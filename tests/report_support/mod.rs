@@ -166,6 +166,7 @@ pub fn build_run(dir: &Path, kind: Kind, width: u32, height: u32) -> PathBuf {
                     xyz: c.xyz.into(),
                     uv: c.uv.into(),
                     face: Some(face.clone()),
+                    cov: None,
                 })
             })
             .collect();
@@ -199,6 +200,7 @@ pub fn build_run(dir: &Path, kind: Kind, width: u32, height: u32) -> PathBuf {
             .map(|p| Correspondence {
                 xyz: p.xyz.into(),
                 uv: p.uv.into(),
+                cov: None,
             })
             .collect(),
     };
@@ -313,6 +315,7 @@ pub fn calibration_with(params: &[Param]) -> CalibrationReport {
         rms_px: 0.1,
         rms_reprojection_px: 0.1 * 2f64.sqrt(),
         sigma_px: 0.1,
+        noise_scale: None,
         n_points: 300,
         n_params: free.len() + 18,
         views: (0..3).map(view).collect(),
