@@ -815,3 +815,61 @@ fn the_database_killed_mid_run_spools_and_the_spool_drains_exactly_once() {
         .collect();
     assert_runs(&store, &camera.folder, &expected);
 }
+
+#[test]
+fn the_profile_report_is_drawn_from_the_database_with_its_history() {
+    let Some((store, url)) = store("t_report") else {
+        return;
+    };
+    let id = "usb:046d:0825:REPORT";
+    for n in 0..3 {
+        store
+            .commit_run(
+                &profile(id, n, true),
+                &opts(),
+                &provenance(&format!("r{n}")),
+            )
+            .unwrap_or_else(|e| panic!("{e}"));
+    }
+    let tmp = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let html = tmp.path().join("report.html");
+    let out = Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args(["report", id, "--store", &url, "--out"])
+        .arg(&html)
+        .env("PGPASSWORD", pg::PASSWORD)
+        .output()
+        .unwrap_or_else(|e| panic!("running cubecal: {e}"));
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let page = std::fs::read_to_string(&html).unwrap_or_else(|e| panic!("{e}"));
+    // The two earlier versions, named by their rows, and the camera.
+    let rows: Vec<i64> = store
+        .history(id)
+        .unwrap_or_else(|e| panic!("{e}"))
+        .iter()
+        .filter(|v| v.state == "history")
+        .map(|v| v.id)
+        .collect();
+    assert_eq!(rows.len(), 2);
+    for row in rows {
+        assert!(
+            page.contains(&format!("(row {row})")),
+            "row {row} not in the report"
+        );
+    }
+    assert!(page.contains("REPORT"), "camera not named");
+    // The password never reaches the page or the output.
+    assert!(!page.contains(pg::PASSWORD) && !text(&out.stdout).contains(pg::PASSWORD));
+    // An unknown camera is an error that names it, not an empty report.
+    let out = Command::new(env!("CARGO_BIN_EXE_cubecal"))
+        .args(["report", "usb:none", "--store", &url, "--out"])
+        .arg(tmp.path().join("none.html"))
+        .env("PGPASSWORD", pg::PASSWORD)
+        .output()
+        .unwrap_or_else(|e| panic!("running cubecal: {e}"));
+    assert!(!out.status.success());
+    assert!(
+        text(&out.stderr).contains("usb:none"),
+        "{}",
+        text(&out.stderr)
+    );
+}

@@ -31,7 +31,8 @@ pub struct ReportArgs {
     /// `<file stem>_plots/` beside it.
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Profile store a camera identity is looked up in (not created when missing).
+    /// Profile store a camera identity is looked up in (not created when missing): a directory, or
+    /// postgres://USER@HOST/DB (password from PGPASSWORD) for a fleet's store.
     #[arg(long, default_value = DEFAULT_STORE)]
     pub store: PathBuf,
 }
@@ -44,6 +45,16 @@ pub fn run(args: ReportArgs, out: Output) -> anyhow::Result<u8> {
             .clone()
             .unwrap_or_else(|| target.join("report.html"));
         cubecal::report::write_report(target, &html)?
+    } else if matches!(
+        cubecal::profile::backend::StoreLocation::parse(&args.store),
+        cubecal::profile::backend::StoreLocation::Postgres(_)
+    ) {
+        // A fleet's store: the camera's profile and history from the database (password from
+        // PGPASSWORD, never the URL).
+        let store = cubecal::profile::open_existing_store(&args.store, None)?;
+        let data = ProfileData::from_backend(store.as_ref(), &args.run)?;
+        let html = args.out.clone().unwrap_or_else(|| data.default_out());
+        cubecal::report::profile::write_profile_report(&data, &html)?
     } else {
         let data = ProfileData::locate(&args.run, &args.store)?;
         let html = args.out.clone().unwrap_or_else(|| data.default_out());

@@ -86,7 +86,15 @@ pub trait ProfileStore: std::fmt::Debug {
 
     /// Make the newest earlier profile of `device` current again.
     fn roll_back(&self, device: &str) -> Result<RolledBack, ProfileError>;
+
+    /// The earlier profiles of `device`, oldest first, each with where it is stored (a history file,
+    /// or the database row) and its document, or why the document cannot be read (the profile
+    /// report lists those rather than failing).
+    fn earlier_profiles(&self, device: &str) -> Result<Vec<EarlierProfile>, ProfileError>;
 }
+
+/// An earlier profile: where it is stored, and its document or why it cannot be read.
+pub type EarlierProfile = (String, Result<Profile, ProfileError>);
 
 impl ProfileStore for super::store::Store {
     fn describe(&self) -> String {
@@ -114,6 +122,22 @@ impl ProfileStore for super::store::Store {
 
     fn list_cameras(&self) -> Result<Vec<ListEntry>, ProfileError> {
         self.list()
+    }
+
+    fn earlier_profiles(&self, device: &str) -> Result<Vec<EarlierProfile>, ProfileError> {
+        Ok(self
+            .history(device)?
+            .into_iter()
+            .map(|path| {
+                let doc = std::fs::read(&path)
+                    .map_err(|source| ProfileError::Read {
+                        path: path.clone(),
+                        source,
+                    })
+                    .and_then(|bytes| super::parse_document(&path, &bytes));
+                (path.display().to_string(), doc)
+            })
+            .collect())
     }
 
     fn roll_back(&self, device: &str) -> Result<RolledBack, ProfileError> {

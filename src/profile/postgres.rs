@@ -424,6 +424,30 @@ impl ProfileStore for PgStore {
         self.describe.clone()
     }
 
+    fn earlier_profiles(
+        &self,
+        device: &str,
+    ) -> Result<Vec<super::backend::EarlierProfile>, ProfileError> {
+        let mut client = self.client();
+        let identity = self.resolve(&mut *client, device)?;
+        let rows = client
+            .query(
+                "SELECT id, folder, document FROM cubecal_profile
+                 WHERE identity = $1 AND state = 'history' ORDER BY id",
+                &[&identity.as_bytes()],
+            )
+            .map_err(self.db_err("reading the history"))?;
+        rows.iter()
+            .map(|r| {
+                let id: i64 = self.get(r, "id")?;
+                let folder: String = self.get(r, "folder")?;
+                let bytes: Vec<u8> = self.get(r, "document")?;
+                let doc = parse_document(&self.doc_path(&folder), &bytes);
+                Ok((format!("{} (row {id})", self.describe), doc))
+            })
+            .collect()
+    }
+
     fn commit_run(
         &self,
         profile: &Profile,

@@ -127,6 +127,48 @@ impl ProfileData {
         })
     }
 
+    /// The profile of `device` and its history as any store keeps them (a PostgreSQL store too): the
+    /// versions are named by where they are stored.
+    pub fn from_backend(
+        store: &dyn crate::profile::ProfileStore,
+        device: &str,
+    ) -> Result<ProfileData, ReportError> {
+        let (current, _) = store.current_profile(device)?;
+        let mut history = Vec::new();
+        let mut skipped = Vec::new();
+        for (place, doc) in store.earlier_profiles(device)? {
+            let place = PathBuf::from(place);
+            match doc {
+                Ok(p) if p.identity.id == current.identity.id => history.push(Version {
+                    path: place,
+                    profile: p,
+                }),
+                Ok(p) => skipped.push((
+                    place,
+                    format!(
+                        "holds the profile of '{}', not of this camera",
+                        display_identity(&p.identity.id)
+                    ),
+                )),
+                Err(e) => skipped.push((place, e.to_string())),
+            }
+        }
+        let source = PathBuf::from(format!(
+            "{} / {}",
+            store.describe(),
+            display_identity(&current.identity.id)
+        ));
+        Ok(ProfileData {
+            current: Version {
+                path: source.clone(),
+                profile: current,
+            },
+            source,
+            history,
+            skipped,
+        })
+    }
+
     /// What `cubecal report PROFILE` names (see the module docs); `store_dir` is `--store`. A store
     /// directory that does not exist is not created.
     pub fn locate(target: &str, store_dir: &Path) -> Result<ProfileData, ReportError> {
