@@ -51,6 +51,11 @@ struct Entry {
     reason: String,
     /// The profile document, exactly as the run's `profile.json` holds it.
     document: String,
+    /// When it was spooled, nanoseconds since the Unix epoch: orders the profiles of one second
+    /// (`created` has whole seconds), so that runs drain in the order they ran. 0 in entries
+    /// written before it existed.
+    #[serde(default)]
+    spooled_ns: u64,
 }
 
 /// A spool directory (created on the first entry).
@@ -160,6 +165,9 @@ impl Spool {
             jump_sigma: options.jump_sigma,
             reason: reason.to_string(),
             document,
+            spooled_ns: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)),
         };
         let mut bytes = serde_json::to_vec_pretty(&entry).map_err(|e| ProfileError::Invalid {
             field: "spool entry".into(),
@@ -214,7 +222,13 @@ impl Spool {
                 }
             }
         }
-        loaded.sort_by(|a, b| (&a.2.created, &a.1.run_id).cmp(&(&b.2.created, &b.1.run_id)));
+        loaded.sort_by(|a, b| {
+            (&a.2.created, a.1.spooled_ns, &a.1.run_id).cmp(&(
+                &b.2.created,
+                b.1.spooled_ns,
+                &b.1.run_id,
+            ))
+        });
         let total = loaded.len();
         for (i, (path, entry, profile)) in loaded.into_iter().enumerate() {
             if entry.store != name {
