@@ -319,6 +319,13 @@ impl Camera {
     /// [`Camera::distort_with_jacobians`] without the coefficients' Jacobian (undistortion's Newton
     /// steps need only this, and the lens refit takes several per window pixel).
     pub fn distort_with_point_jacobian(&self, x: f64, y: f64) -> (Vector2<f64>, Matrix2<f64>) {
+        let t = self.distortion_terms(x, y);
+        (t.distorted, t.j_xy)
+    }
+
+    /// The distorted point, its point Jacobian, and the radial terms the coefficients' Jacobian
+    /// is built from (shared by both `distort_with_*` functions).
+    fn distortion_terms(&self, x: f64, y: f64) -> DistortionTerms {
         let p = &self.params;
         let (k1, k2, p1, p2, k3) = (p[idx::K1], p[idx::K2], p[idx::P1], p[idx::P2], p[idx::K3]);
         let (k4, k5, k6) = (p[idx::K4], p[idx::K5], p[idx::K6]);
@@ -339,7 +346,15 @@ impl Camera {
             2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y,
             radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x,
         );
-        (Vector2::new(xd, yd), j_xy)
+        DistortionTerms {
+            distorted: Vector2::new(xd, yd),
+            j_xy,
+            r2,
+            r4,
+            r6,
+            a,
+            b,
+        }
     }
 
     /// Distort, returning also `∂(x'', y'')/∂(x, y)` and `∂(x'', y'')/∂(k1, k2, p1, p2, k3, k4, k5, k6)`.
@@ -348,26 +363,15 @@ impl Camera {
         x: f64,
         y: f64,
     ) -> (Vector2<f64>, Matrix2<f64>, SMatrix<f64, 2, 8>) {
-        let p = &self.params;
-        let (k1, k2, p1, p2, k3) = (p[idx::K1], p[idx::K2], p[idx::P1], p[idx::P2], p[idx::K3]);
-        let (k4, k5, k6) = (p[idx::K4], p[idx::K5], p[idx::K6]);
-        let r2 = x * x + y * y;
-        let r4 = r2 * r2;
-        let r6 = r4 * r2;
-        let a = 1.0 + k1 * r2 + k2 * r4 + k3 * r6;
-        let b = 1.0 + k4 * r2 + k5 * r4 + k6 * r6;
-        let radial = a / b;
-        let da = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4;
-        let db = k4 + 2.0 * k5 * r2 + 3.0 * k6 * r4;
-        let d_radial = (da * b - a * db) / (b * b); // ∂radial/∂r²
-        let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-        let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-        let j_xy = Matrix2::new(
-            radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x,
-            2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y,
-            2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y,
-            radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x,
-        );
+        let DistortionTerms {
+            distorted,
+            j_xy,
+            r2,
+            r4,
+            r6,
+            a,
+            b,
+        } = self.distortion_terms(x, y);
         // ∂radial/∂k: numerator terms over b, denominator terms −a·r^n / b².
         let inv_b = 1.0 / b;
         let na = -a * inv_b * inv_b;
@@ -390,7 +394,7 @@ impl Camera {
         j_k[(1, 2)] = r2 + 2.0 * y * y;
         j_k[(0, 3)] = r2 + 2.0 * x * x;
         j_k[(1, 3)] = 2.0 * x * y;
-        (Vector2::new(xd, yd), j_xy, j_k)
+        (distorted, j_xy, j_k)
     }
 
     /// Map distorted normalised coordinates to pixels.
@@ -531,6 +535,19 @@ impl Camera {
         let p = self.undistort(xd, yd)?;
         Ok(Vector3::new(p.x, p.y, 1.0).normalize())
     }
+}
+
+/// What [`Camera::distort_with_point_jacobian`] and [`Camera::distort_with_jacobians`] share: the
+/// distorted point, `∂(x'', y'')/∂(x, y)`, the powers of r² and the rational model's numerator `a`
+/// and denominator `b`.
+struct DistortionTerms {
+    distorted: Vector2<f64>,
+    j_xy: Matrix2<f64>,
+    r2: f64,
+    r4: f64,
+    r6: f64,
+    a: f64,
+    b: f64,
 }
 
 #[cfg(test)]
