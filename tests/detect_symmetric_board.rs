@@ -5,6 +5,9 @@
 //! calibration from renders of it recovers the rendered camera. Renders with exact ground truth.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stderr)]
 
+#[path = "support/truth.rs"]
+mod truth;
+
 use cubecal::detect::score::EvalSet;
 use cubecal::detect::{CornerFinder, detect};
 use cubecal::render::{random_poses, render};
@@ -59,30 +62,5 @@ fn a_lone_symmetric_board_is_labelled_and_calibrates_the_rendered_camera() {
     }
     eprintln!("{} of 8 views labelled", views.len());
     assert!(views.len() >= 7, "{} of 8 views labelled", views.len());
-    let cal = cubecal::calib::solve(
-        &views,
-        camera.image_size,
-        &cubecal::calib::SolveOptions::default(),
-    )
-    .unwrap();
-    let truth = [camera.fx(), camera.fy(), camera.cx(), camera.cy()];
-    let got = [
-        cal.camera.fx(),
-        cal.camera.fy(),
-        cal.camera.cx(),
-        cal.camera.cy(),
-    ];
-    eprintln!(
-        "truth {truth:.2?}, solved {got:.2?}, rms {:.3} px",
-        cal.rms_px
-    );
-    assert!(cal.rms_px < 0.2, "rms {} px", cal.rms_px);
-    for (k, (t, g)) in truth.iter().zip(got).enumerate() {
-        // Each within 5σ of the solve's own uncertainty (and a small floor for the renderer).
-        let tol = 5.0 * cal.std_dev[k] + 0.2;
-        assert!(
-            (t - g).abs() < tol,
-            "parameter {k}: {g} vs truth {t} (tol {tol})"
-        );
-    }
+    truth::assert_calibrates_to(&views, &camera, 0.2);
 }
