@@ -12,15 +12,9 @@ use cubecal::render::{StageGeometry, default_view};
 use cubecal::rig::Rig;
 use cubecal::station::plan::{Planner, StagePose, grid};
 
-/// This thread's CPU time so far (ns), from `/proc/thread-self/schedstat` (the machine is shared).
-fn cpu_ns() -> Option<u64> {
-    std::fs::read_to_string("/proc/thread-self/schedstat")
-        .ok()?
-        .split_whitespace()
-        .next()?
-        .parse()
-        .ok()
-}
+#[path = "support/cpu.rs"]
+mod cpu;
+use cpu::cpu_ns;
 
 fn main() {
     let rig = Rig::from_toml_str(

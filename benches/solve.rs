@@ -8,16 +8,9 @@ use std::time::{Duration, Instant};
 use cubecal::calib::{self, SolveOptions};
 use cubecal::render::correspondences::{add_noise, cube_scenario, reference_camera};
 
-/// This thread's time on a CPU so far (ns), from `/proc/thread-self/schedstat`: on a loaded machine the
-/// wall-clock figures include the time other processes held the cores; this does not.
-fn cpu_ns() -> Option<u64> {
-    std::fs::read_to_string("/proc/thread-self/schedstat")
-        .ok()?
-        .split_whitespace()
-        .next()?
-        .parse()
-        .ok()
-}
+#[path = "support/cpu.rs"]
+mod cpu;
+use cpu::cpu_ns;
 
 fn cpu_ms_per_run(start: Option<u64>, runs: usize) -> String {
     match (start, cpu_ns()) {
