@@ -439,26 +439,40 @@ fn sigterm_mid_run_stops_within_5_s_without_touching_profiles() {
     let store = dir.path().join("store");
     let config = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/station.toml");
     let quoted = |p: &std::path::Path| format!("\"{}\"", p.display());
-    // A previous, passing profile of this camera in the store, made by a real (short) run.
+    // A previous, passing profile of this camera in the store, made by a real (short) run of the
+    // service itself: its last status starts with the verdict (what `systemctl status` shows after
+    // the run), the spool's depth after it.
+    let first_listener = Listener::new();
     let first = Command::new(env!("CARGO_BIN_EXE_cubecal"))
-        .args([
-            "calibrate",
-            "--config",
-            config,
-            "--device-id",
-            "demo-camera",
-        ])
-        .args(["--poses", "6", "--set", "qa.min_views=4"])
-        .arg("--out")
-        .arg(dir.path().join("first"))
-        .arg("--store")
-        .arg(&store)
+        .args(["serve", "--device", "/dev/null", "--config", config])
+        .args(["--set", "camera.source=\"synthetic\""])
+        .args(["--set", "camera.device_id=\"demo-camera\""])
+        .args(["--set", "plan.poses=6", "--set", "qa.min_views=4"])
+        .arg("--set")
+        .arg(format!("output.out={}", quoted(&dir.path().join("first"))))
+        .arg("--set")
+        .arg(format!("output.store={}", quoted(&store)))
+        .env("NOTIFY_SOCKET", &first_listener.path)
+        .env_remove("WATCHDOG_USEC")
         .output()
         .unwrap();
     assert!(
         first.status.success(),
         "the first run passes: {}",
         String::from_utf8_lossy(&first.stdout)
+    );
+    let statuses: Vec<String> = first_listener
+        .drain(Duration::from_millis(300))
+        .iter()
+        .filter_map(|m| m.status().map(str::to_string))
+        .collect();
+    let last = statuses
+        .iter()
+        .rfind(|s| !s.starts_with("stopping"))
+        .expect("statuses from the first run");
+    assert!(
+        last.starts_with("verdict PASS: ") && last.contains(" | spool: 0 profile(s) waiting for "),
+        "the last status names the verdict, then the spool: {last:?}"
     );
     let before = tree(&store);
     assert!(

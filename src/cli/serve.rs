@@ -99,7 +99,9 @@ fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow:
         rig,
         run_dir,
     } = setup::prepare(&request)?;
-    report_spool(&cfg, sink, "before the run");
+    if let Some(line) = spool_line(&cfg, sink, "before the run") {
+        sink.notifier.status(&line);
+    }
     // No operator: a service cannot answer a manual turntable's prompts (the station says so).
     let hw = station::hardware::open(&cfg, &rig, None)?;
     if stop.load(Ordering::SeqCst) {
@@ -113,7 +115,13 @@ fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow:
         run_dir: &run_dir,
     };
     let mut result = station::run(&spec, hw, sink, stop)?;
-    report_spool(&cfg, sink, "after the run");
+    // The last status an operator sees in `systemctl status` starts with the verdict; the spool's
+    // depth follows it.
+    let verdict = cubecal::station::notify::verdict_line(&result.verdict);
+    match spool_line(&cfg, sink, "after the run") {
+        Some(line) => sink.notifier.status(&format!("{verdict} | {line}")),
+        None => sink.notifier.status(&verdict),
+    }
     let previews = std::mem::take(&mut result.previews);
     super::report::write_for_run(&run_dir, previews, sink);
     let mut o = std::io::stdout().lock();
@@ -133,12 +141,12 @@ fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow:
     Ok(result.exit_code())
 }
 
-/// The spool's depth in the service status (`STATUS=spool: N profile(s) waiting for STORE in DIR`) and
-/// on stdout, when the station has a store: profiles that passed while the store was unreachable and
-/// wait to be committed (by this run's commit, or `cubecal profile sync`).
-fn report_spool(cfg: &station::StationConfig, sink: &mut ServiceSink, when: &str) {
+/// The spool's depth (`spool: N profile(s) waiting for STORE in DIR`), printed on stdout and returned
+/// for the service status, when the station has a store: profiles that passed while the store was
+/// unreachable and wait to be committed (by this run's commit, or `cubecal profile sync`).
+fn spool_line(cfg: &station::StationConfig, sink: &ServiceSink, when: &str) -> Option<String> {
     let Some(store) = &cfg.output.store else {
-        return;
+        return None;
     };
     let dir = cfg.output.spool_dir();
     let store = cubecal::profile::backend::describe_location(store);
@@ -149,7 +157,6 @@ fn report_spool(cfg: &station::StationConfig, sink: &mut ServiceSink, when: &str
         ),
         Err(e) => format!("spool: cannot read {} ({when}): {e}", dir.display()),
     };
-    sink.notifier.status(&line);
     let mut o = std::io::stdout().lock();
     let _ = if sink.json {
         writeln!(
@@ -160,6 +167,7 @@ fn report_spool(cfg: &station::StationConfig, sink: &mut ServiceSink, when: &str
     } else {
         writeln!(o, "{line}")
     };
+    Some(line)
 }
 
 /// On the first SIGTERM or SIGINT: tell systemd we are stopping, and set the station's stop flag.
