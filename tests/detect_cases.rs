@@ -58,6 +58,25 @@ fn a_board_without_margin_over_a_dark_background() {
 }
 
 #[test]
+fn a_board_printed_to_the_paper_edge_on_a_two_tone_desk_is_labelled_with_its_pose_flagged() {
+    // Issue 28's classic planar set: where the desk's dark/bright line meets the paper's edge, one
+    // corner-like junction sits one step beyond the board's last column. It is an incomplete line,
+    // not a continuing board: the board is labelled (every view, no wrong label) with its pose
+    // flagged, since a shift by that line would move the view's pose and not the intrinsics.
+    let s = check("paper-edge", 0..6, 0.03);
+    assert_eq!(s.faces, 6, "{s}");
+    let case = cases::cases(6)
+        .into_iter()
+        .find(|c| c.name == "paper-edge")
+        .unwrap();
+    let cache = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("detect_cases");
+    let (img, _) = cases::frame(&case, 0, &cache);
+    let det = detect(&mut CornerFinder::new().unwrap(), &img, &case.rig).unwrap();
+    let why = det.faces[0].ambiguous_pose.as_deref().unwrap_or_default();
+    assert!(why.contains("an incomplete line"), "{why:?}");
+}
+
+#[test]
 fn a_board_filling_the_frame() {
     check("fill", 0..2, 0.05);
     check("fill-k04", 0..2, 0.05);

@@ -16,7 +16,12 @@
 //!   (opposite difference, at least [`CONTINUED_CONTRAST`] of the inner one): a fit that fails
 //!   there may have missed a real corner (the grid stopped growing precisely because fits failed,
 //!   e.g. at a foreshortened far end), so the position proves nothing;
-//! * a fit like the grid's corners at any position drops the grid (it may continue);
+//! * a fit like the grid's corners at any position drops the grid (it may continue) — unless the
+//!   side shows an incomplete line: corners at no more than [`MAX_EXTRA_FRACTION`] of its
+//!   positions, every other position empty (the paper's edge on a desk bright on one side and dark
+//!   on the other makes one or two such junctions; a continuing board shows the line whole). Such
+//!   a side is not proven either, but like the border it cannot hide a continuing board, so a rig
+//!   of one face labels the grid with its pose flagged (see `label`);
 //! * positions outside the image, or whose fit window the border clips (the fit refuses it),
 //!   prove nothing;
 //! * each side needs [`MIN_EMPTY_BEYOND`] empty positions, else the grid is dropped: "grid may
@@ -47,6 +52,7 @@ use super::dense::Dense;
 use super::face::MIN_COLOUR_CONTRAST;
 use super::fold::FoldSides;
 use super::refine::{self, RefineFailure};
+use super::trim::MAX_EXTRA_FRACTION;
 
 /// fit window unclipped) for the grid's extent to count as proven.
 pub const MIN_EMPTY_BEYOND: usize = 2;
@@ -299,11 +305,13 @@ pub(super) fn check_extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Resu
 /// Why a grid's extent is not proven.
 #[derive(Debug, Clone, PartialEq)]
 pub(super) struct ExtentFailure {
-    /// The first failing side's reason.
+    /// The first failing side's reason (and each side that shows an incomplete line).
     pub reason: String,
-    /// Only the frame border is in the way: no side shows a corner like the grid's one step beyond
-    /// it, and every side without its empty positions has positions outside the image or too close
-    /// to its border. The grid may be the whole board or a part of a bigger one cut by the border.
+    /// Nothing shows a continuing board: every side without its empty positions has positions
+    /// outside the image or too close to its border, and a side with corners like the grid's one
+    /// step beyond it shows an incomplete line of them (at most [`MAX_EXTRA_FRACTION`] of its
+    /// positions, every other one empty: the paper's edge on a two-tone desk, clutter). The grid may
+    /// be the whole board or a part of a bigger one cut by the border or shifted by that line.
     pub only_border: bool,
 }
 
@@ -315,6 +323,7 @@ pub(super) struct ExtentFailure {
 pub(super) fn extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Result<(), ExtentFailure> {
     let mut first: Option<String> = None;
     let mut only_border = true;
+    let mut lines: Vec<String> = Vec::new();
     for side in Side::ALL {
         // A side at a fold ends there: the next line of corners is the fold, on another plane.
         if side.at_fold(folds) {
@@ -332,6 +341,16 @@ pub(super) fn extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Result<(),
             "one step beyond the grid"
         );
         let towards = image_side(b.outward);
+        // An incomplete line beyond the side: a few corners, every other position seen empty. A
+        // continuing board shows the line whole (a failed fit or two aside).
+        let k = b.corners.len();
+        if k > 0 && k as f64 <= MAX_EXTRA_FRACTION * b.n as f64 && b.empty + k == b.n {
+            lines.push(format!(
+                "one step beyond its side towards the image {towards}, {k} of {} positions show an X-corner like the grid's and the others none: an incomplete line (the paper's edge, clutter), not a continuing board",
+                b.n
+            ));
+            continue;
+        }
         if let Some(c) = b.corners.first() {
             return Err(ExtentFailure {
                 reason: first.unwrap_or_else(|| format!(
@@ -367,9 +386,16 @@ pub(super) fn extent(img: &GrayImage, d: &Dense, folds: FoldSides) -> Result<(),
         }
     }
     match first {
-        None => Ok(()),
+        None if lines.is_empty() => Ok(()),
+        None => Err(ExtentFailure {
+            reason: lines.join("; "),
+            only_border,
+        }),
         Some(reason) => Err(ExtentFailure {
-            reason,
+            reason: std::iter::once(reason)
+                .chain(lines)
+                .collect::<Vec<_>>()
+                .join("; "),
             only_border,
         }),
     }

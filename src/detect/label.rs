@@ -8,9 +8,11 @@
 //! 2. **Size.** The (complete) grid's rows × cols must equal a face's, directly or rotated by 90°.
 //! 3. **Extent** (`extent`): the size only means something if the board ends where the
 //!    grid does. On a rig of one face, a grid of the face's size whose only missing proof is the
-//!    frame border is labelled all the same, its pose flagged
+//!    frame border, or an incomplete line of corner-like junctions one step beyond a side (the
+//!    paper's edge on a two-tone desk), is labelled all the same, its pose flagged
 //!    ([`FaceDetection::ambiguous_pose`]): a shift of a planar view's labels within its plane
-//!    changes that view's pose, never the intrinsics.
+//!    changes that view's pose, never the intrinsics. A grid that grew over such a line — one line
+//!    larger than a face, that line incomplete — is first trimmed to the face (`trim`).
 //! 4. **Identity** (`identity`): the face and its orientation, by square colours and,
 //!    when they leave a choice (faces of equal size, 180°-symmetric faces), by the rig geometry of
 //!    all grids of the frame; with two or more faces the labelling must fit one camera clearly
@@ -30,6 +32,7 @@ use super::fold::{self, Piece};
 use super::grid::MIN_LINES;
 use super::identity::{self, Whole};
 use super::place::{Partial, place, place_by_edges};
+use super::trim;
 use crate::rig::Rig;
 use image::GrayImage;
 
@@ -48,8 +51,7 @@ pub fn label(
     let mut partials = Vec::new();
     let pieces: Vec<Piece> = fold::join(grids).iter().flat_map(fold::split).collect();
     for Piece { grid: g, folds } in &pieces {
-        let grid_folds = *folds;
-        let mut folds = *folds;
+        let mut grid_folds = *folds;
         if g.count() == 0 {
             rejected.push(Rejection::frame(
                 "a lattice of X-corners was found but none of its corners fits a checkerboard corner"
@@ -57,6 +59,9 @@ pub fn label(
             ));
             continue;
         }
+        let mut trimmed: Option<String> = None;
+        let trimmed_grid;
+        let mut g = g;
         if g.count() != g.rows * g.cols || g.rows < MIN_LINES || g.cols < MIN_LINES {
             let reason = format!(
                 "incomplete grid ({} of {}×{} corners)",
@@ -64,9 +69,34 @@ pub fn label(
                 g.rows,
                 g.cols
             );
-            partials.push(Partial::new(g, grid_folds, reason));
-            continue;
+            let t = (g.rows >= MIN_LINES && g.cols >= MIN_LINES)
+                .then(|| trim::trim(g, rig, [img.width(), img.height()]))
+                .flatten();
+            let Some(t) = t else {
+                partials.push(Partial::new(g, grid_folds, reason));
+                continue;
+            };
+            // The trimmed side is a new side of the grid: no fold there.
+            grid_folds = t.side.clear(grid_folds);
+            if rig.faces.len() > 1 {
+                // A shift by one line would move the face against the others: placed through the
+                // frame's proven faces only.
+                partials.push(Partial::new(
+                    &t.grid,
+                    grid_folds,
+                    format!("{reason}; {}", t.reason),
+                ));
+                continue;
+            }
+            trimmed = Some(t.reason);
+            trimmed_grid = t.grid;
+            g = &trimmed_grid;
+            // The trimmed side's proof is the extra line's emptiness (see `trim`).
+            let mut ends = grid_folds;
+            t.side.set(&mut ends);
+            grid_folds = ends;
         }
+        let mut folds = grid_folds;
         let mut dense = Dense {
             rows: g.rows,
             cols: g.cols,
@@ -88,13 +118,23 @@ pub fn label(
             continue;
         }
         let ambiguous_pose = match extent(img, &dense, folds) {
+            // One face: a shift of the labels by the trimmed line moves this view's pose only.
+            Ok(()) if trimmed.is_some() => trimmed.take(),
             Ok(()) => None,
-            // One face: a grid of its size cut only by the frame border is the whole board or, if
-            // the rig file understates the board, a part of it whose labels are shifted within the
-            // plane, which moves this view's pose and not the intrinsics. Labelled, pose flagged.
-            Err(f) if f.only_border && rig.faces.len() == 1 => Some(f.reason),
+            // One face: a grid of its size cut only by the frame border (or ending at an incomplete
+            // line of corner-like junctions) is the whole board or, if the rig file understates the
+            // board, a part of it whose labels are shifted within the plane, which moves this
+            // view's pose and not the intrinsics. Labelled, pose flagged.
+            Err(f) if f.only_border && rig.faces.len() == 1 => Some(match trimmed.take() {
+                Some(t) => format!("{t}; {}", f.reason),
+                None => f.reason,
+            }),
             Err(f) => {
-                partials.push(Partial::new(g, grid_folds, f.reason));
+                let reason = match &trimmed {
+                    Some(t) => format!("{t}; {}", f.reason),
+                    None => f.reason,
+                };
+                partials.push(Partial::new(g, grid_folds, reason));
                 continue;
             }
         };

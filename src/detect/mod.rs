@@ -44,6 +44,7 @@ pub mod own_lattice;
 pub mod place;
 pub mod refine;
 pub mod score;
+mod trim;
 pub mod undistorted;
 
 pub use undistorted::refine_with_camera;

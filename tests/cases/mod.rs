@@ -12,6 +12,8 @@
 //! - `wrapped-cube`: one sheet of squares wrapped around a vertical edge of a box (two faces of 6×10,
 //!   30 mm squares; the fold on a line of the sheet's corners), strong barrel distortion (k1 −0.3);
 //! - `cut`: the 13×12 board with margin, cut by the frame border (no complete face in the frame);
+//! - `paper-edge`: the 13×12 board printed to the paper's edge, on a desk dark on one side of a line
+//!   and bright on the other, 640×480, k1 −0.25 (issue 28's classic planar set);
 //! - `photo-corner`: a replica of the real inside corner of `bailus_tsai_cube_stereo` (two walls, the
 //!   pattern continuous across the fold, one wall running off the frame, k1 −0.3 at a wide angle).
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
@@ -263,6 +265,24 @@ pub fn cases(n: usize) -> Vec<Case> {
             scene,
             camera,
             settings: settings(16),
+            poses,
+        });
+    }
+    {
+        // Issue 28's classic planar set: a 13×12 board printed to the paper's edge, 640×480 with
+        // barrel distortion, the paper on a desk dark on one side of a line and bright on the other
+        // (fixtures/rigs/board_on_desk_scene.toml): one corner-like junction one column beyond the
+        // board, where the line meets the paper's edge.
+        let scene = rig("board_on_desk_scene.toml");
+        let rig = rig("board_13x12_nomargin.toml");
+        let camera = camera(640, 480, 660.0, -0.25);
+        let poses = random_poses(&rig, &camera, n, 18);
+        out.push(Case {
+            name: "paper-edge",
+            rig,
+            scene,
+            camera,
+            settings: settings(18),
             poses,
         });
     }
