@@ -44,6 +44,7 @@ pub mod own_lattice;
 pub mod place;
 pub mod refine;
 pub mod score;
+pub mod settle;
 mod trim;
 pub mod undistorted;
 

@@ -667,24 +667,7 @@ fn examine_frames(
             ),
         );
     }
-    let mut points = Vec::with_capacity(record.corners);
-    let mut faces = Vec::with_capacity(record.corners);
-    for f in &det.faces {
-        let face_name = spec
-            .rig
-            .faces
-            .get(f.face)
-            .map(|x| x.name.clone())
-            .unwrap_or_default();
-        for c in &f.corners {
-            points.push(Correspondence {
-                xyz: c.xyz,
-                uv: c.uv,
-                cov: c.covariance(),
-            });
-            faces.push(face_name.clone());
-        }
-    }
+    let (points, faces) = view_points(spec.rig, &det);
     record.accepted = true;
     // A remark on an accepted view: its labels may be shifted or turned within the board's plane.
     record.reason = det
@@ -713,6 +696,85 @@ fn examine_frames(
         },
         None,
     ))
+}
+
+/// A detection's labelled corners as a view's points, with each point's face name.
+fn view_points(
+    rig: &crate::rig::Rig,
+    det: &crate::detect::FrameDetection,
+) -> (Vec<Correspondence>, Vec<String>) {
+    let mut points = Vec::new();
+    let mut faces = Vec::new();
+    for f in &det.faces {
+        let face_name = rig
+            .faces
+            .get(f.face)
+            .map(|x| x.name.clone())
+            .unwrap_or_default();
+        for c in &f.corners {
+            points.push(Correspondence {
+                xyz: c.xyz,
+                uv: c.uv,
+                cov: c.covariance(),
+            });
+            faces.push(face_name.clone());
+        }
+    }
+    (points, faces)
+}
+
+/// Grids the views' frames could not label on their own, settled by the camera of the accepted views
+/// (`detect::settle`): a preliminary solve of the views to fit, then each frame with a proven face
+/// and rejected grids scores every labelling of those grids in its pose. Admitted grids join their
+/// view; every decision, with its margin, is returned as a note.
+fn settle_candidates(
+    spec: &RunSpec<'_>,
+    poses: &mut [PoseData],
+    image_size: [u32; 2],
+    n_fit: usize,
+) -> Vec<String> {
+    let has_candidates = poses.iter().any(|p| {
+        p.view.is_some()
+            && p.detection.as_ref().is_some_and(|d| {
+                d.rejected
+                    .iter()
+                    .any(|r| r.corners.len() >= crate::detect::settle::MIN_CORNERS)
+            })
+    });
+    if !has_candidates || spec.rig.faces.len() < 2 {
+        return Vec::new();
+    }
+    let fit: Vec<View> = poses
+        .iter()
+        .filter_map(|p| p.view.as_ref().map(|v| v.0.clone()))
+        .take(n_fit)
+        .collect();
+    let Ok(opts) = spec.config.solve_options("station config") else {
+        return Vec::new();
+    };
+    let Ok(cal) = crate::calib::solve(&fit, image_size, &opts) else {
+        return Vec::new();
+    };
+    let mut notes = Vec::new();
+    for p in poses.iter_mut() {
+        let (Some((view, faces)), Some(det)) = (p.view.as_mut(), p.detection.as_mut()) else {
+            continue;
+        };
+        let decisions = crate::detect::settle::settle(spec.rig, &cal.camera, det, &view.name);
+        if decisions.iter().any(|d| d.admitted.is_some()) {
+            let (points, names) = view_points(spec.rig, det);
+            p.record.corners = points.len();
+            p.record.faces = det.faces.len();
+            view.points = points;
+            *faces = names;
+        }
+        notes.extend(
+            decisions
+                .into_iter()
+                .map(|d| format!("{}: grid {}", view.name, d.text)),
+        );
+    }
+    notes
 }
 
 /// Whether the accepted views already meet coverage and the σ targets (for `stop_when_sufficient`).
@@ -755,6 +817,18 @@ fn solve_and_judge(
 ) -> Result<RunResult, StationError> {
     let cfg = spec.config;
     let image_size = [info.width, info.height];
+    let mut poses = poses;
+    let n_views = poses.iter().filter(|p| p.view.is_some()).count();
+    let settled = settle_candidates(
+        spec,
+        &mut poses,
+        image_size,
+        n_views.saturating_sub(if n_views > cfg.plan.held_out + 1 {
+            cfg.plan.held_out
+        } else {
+            0
+        }),
+    );
     let mut accepted: Vec<(View, Vec<String>, Option<String>)> = poses
         .iter()
         .filter_map(|p| {
@@ -806,7 +880,7 @@ fn solve_and_judge(
             coverage.add(&p.uv);
         }
     }
-    let mut notes = Vec::new();
+    let mut notes = settled;
     let mut result = RunResult {
         verdict: Verdict::default(),
         calibration: None,

@@ -12,6 +12,7 @@
 //! - `wrapped-cube`: one sheet of squares wrapped around a vertical edge of a box (two faces of 6×10,
 //!   30 mm squares; the fold on a line of the sheet's corners), strong barrel distortion (k1 −0.3);
 //! - `cut`: the 13×12 board with margin, cut by the frame border (no complete face in the frame);
+//! - `cube-cut`: the three-face cube pushed against the frame's borders (k1 −0.3), faces cut;
 //! - `paper-edge`: the 13×12 board printed to the paper's edge, on a desk dark on one side of a line
 //!   and bright on the other, 640×480, k1 −0.25 (issue 28's classic planar set);
 //! - `photo-corner`: a replica of the real inside corner of `bailus_tsai_cube_stereo` (two walls, the
@@ -265,6 +266,34 @@ pub fn cases(n: usize) -> Vec<Case> {
             scene,
             camera,
             settings: settings(16),
+            poses,
+        });
+    }
+    {
+        // The three-face cube pushed toward the frame's borders and corners by turning the camera
+        // (wide lens, k1 −0.3): one or two faces cut by the border beside proven ones.
+        let rig = rig("cube_outside.toml");
+        let camera = camera(1280, 960, 900.0, -0.3);
+        let base = default_view(&rig, &camera);
+        let pans: [([f64; 3], f64); 6] = [
+            ([0.05, 1.0, 0.1], 24.0),
+            ([0.05, 1.0, -0.1], -26.0),
+            ([1.0, 0.05, 0.1], 20.0),
+            ([1.0, 0.05, -0.1], -21.0),
+            ([1.0, 1.0, 0.1], 24.0),
+            ([1.0, -1.0, -0.1], -25.0),
+        ];
+        let poses = pans
+            .iter()
+            .take(n)
+            .map(|&(a, d)| panned(&base, Vector3::from(a), d))
+            .collect();
+        out.push(Case {
+            name: "cube-cut",
+            scene: rig.clone(),
+            rig,
+            camera,
+            settings: settings(19),
             poses,
         });
     }
