@@ -6,6 +6,7 @@ mod cases;
 
 use std::path::PathBuf;
 
+use cubecal::calib::pose::solve_pose;
 use cubecal::detect::score::{Summary, score};
 use cubecal::detect::settle::settle;
 use cubecal::detect::{CornerFinder, detect};
@@ -16,12 +17,13 @@ fn settled_grids_carry_no_wrong_label() {
     let mut finder = CornerFinder::new().unwrap();
     let mut admitted = 0;
     let mut left_out = 0;
-    for case in cases::cases(6) {
+    for case in cases::cases(12) {
         if case.rig.faces.len() < 2 {
             continue;
         }
-        // All of `cube-cut`; the frames of the other sets that tests/detect_cases.rs renders too.
-        let n = if case.name == "cube-cut" {
+        // All of `cube-cut` and `wrapped-cube`; the frames of the other sets that
+        // tests/detect_cases.rs renders too.
+        let n = if matches!(case.name, "cube-cut" | "wrapped-cube") {
             case.poses.len()
         } else {
             2
@@ -41,15 +43,39 @@ fn settled_grids_carry_no_wrong_label() {
             }
             let s = score(&case.rig, &truth, &det);
             let after = Summary::of(&s, 0.0, 90.1);
-            let wrong: usize = s.iter().map(|f| f.mislabelled).sum();
+            // Faces labelled only up to a symmetry of the rig (pose flagged) may carry the
+            // symmetric labels; every other face must carry the true ones.
+            let flagged = |face: usize| {
+                det.faces
+                    .iter()
+                    .any(|f| f.face == face && f.ambiguous_pose.is_some())
+            };
+            let wrong: usize = s
+                .iter()
+                .filter(|f| !flagged(f.face))
+                .map(|f| f.mislabelled)
+                .sum();
             assert_eq!(wrong, 0, "{} frame {k}: {after}", case.name);
             assert!(after.found >= before.found);
+            // Symmetric labels teach the camera what the true ones do: the frame's labelled corners
+            // fit the rendered camera.
+            if det.faces.iter().any(|f| f.ambiguous_pose.is_some()) {
+                let fit = solve_pose(&case.camera, &det.to_view("v")).unwrap();
+                assert!(
+                    fit.rms_px < 0.2,
+                    "{} frame {k}: {} px",
+                    case.name,
+                    fit.rms_px
+                );
+            }
         }
     }
     eprintln!("admitted {admitted}, left out {left_out}");
     // Measured: the cube pushed against the border (`cube-cut`) has two frames whose cut face
-    // `place` could not place and the camera settles (log-likelihood ratios in the millions).
-    assert!(admitted >= 2, "admitted {admitted}");
+    // `place` could not place and the camera settles (log-likelihood ratios in the millions); the
+    // wrapped sheet's frame 8 shows one face at 45° (labelled up to the rig's symmetry) and the
+    // other at 70°, whose extent the frame cannot prove: settled jointly, up to that symmetry.
+    assert!(admitted >= 3, "admitted {admitted}");
 }
 
 /// `calibrate --images` on the cube pushed against the border: the two cut faces the frames alone

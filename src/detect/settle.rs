@@ -20,9 +20,13 @@
 //!   of σ each, so the margin is wide where the test decides and the rule only bites when the
 //!   prediction is poor (a badly known lens far out in the image) or the grid tiny.
 //!
-//! Either way the decision is printed with its margin. Labellings one similarity apart of a frame
-//! without proven faces are not this module's (`identity` labels them with the pose flagged); a
-//! frame with no proven face has no pose to predict from and is left as it is. The admitted
+//! Either way the decision is printed with its margin. A frame whose only labelled face is known
+//! only up to a symmetry of the rig (`identity` labelled it with its pose flagged: a lone grid of a
+//! shape two faces share, a lone 180°-symmetric face) has no pose to predict from; there each of
+//! that face's labellings that fits the camera gives one, and the rejected grids choose between
+//! them by the same log-likelihood margin: the frame's two faces are then labelled jointly and the
+//! flag lifted (a sheet wrapped around a box's edge seen with one face at 70°, whose extent the
+//! frame cannot prove). A frame with no labelled face is left as it is. The admitted
 //! corners carry the median σ of the frame's labelled corners (their own fit's σ is not kept in a
 //! rejection); the station's second look (`undistorted`) fits them again with the lens.
 
@@ -64,49 +68,264 @@ struct Fit {
 }
 
 /// Settle the rejected grids of `det` with `camera`: admitted grids become faces of `det` (their
-/// rejections removed), and every grid tried gets a decision. Nothing happens without a proven face
-/// in the frame (no pose) or without rejected grids.
+/// rejections removed), and every grid tried gets a decision. The pose comes from the frame's
+/// proven faces; a frame whose one face is labelled only up to a symmetry of the rig (its pose
+/// flagged) is settled jointly: each of that face's labellings gives a pose, and the one under which
+/// the rejected grids fit — by the same margin — labels both, the flag lifted. Nothing happens
+/// without rejected grids or without a face to take the pose from.
 pub fn settle(rig: &Rig, camera: &Camera, det: &mut FrameDetection, name: &str) -> Vec<Decision> {
+    let tried: Vec<usize> = (0..det.rejected.len())
+        .filter(|&i| det.rejected[i].corners.len() >= MIN_CORNERS)
+        .collect();
+    if tried.is_empty() {
+        return Vec::new();
+    }
     let proven: Vec<&FaceDetection> = det
         .faces
         .iter()
         .filter(|f| f.ambiguous_pose.is_none())
         .collect();
-    let tried: Vec<usize> = (0..det.rejected.len())
-        .filter(|&i| det.rejected[i].corners.len() >= MIN_CORNERS)
-        .collect();
-    if proven.is_empty() || tried.is_empty() {
-        return Vec::new();
-    }
-    let view = crate::calib::View {
-        name: name.to_string(),
-        points: proven
+    let corner_sigma = median_sigma(&det.faces);
+    if !proven.is_empty() {
+        let points: Vec<_> = proven
             .iter()
             .flat_map(|f| f.corners.iter())
-            .map(|c| crate::calib::Correspondence {
-                xyz: c.xyz,
-                uv: c.uv,
-                cov: None,
-            })
-            .collect(),
-    };
-    let Ok(pose) = solve_pose(camera, &view) else {
+            .map(|c| (c.xyz, c.uv))
+            .collect();
+        let Some((pose, rms)) = pose_of(camera, &points, name) else {
+            return Vec::new();
+        };
+        let sigma = rms.max(MIN_SIGMA_PX);
+        let taken: Vec<usize> = det.faces.iter().map(|f| f.face).collect();
+        return settle_in(rig, camera, &pose, sigma, corner_sigma, det, &tried, &taken);
+    }
+    if det.faces.len() != 1 {
         return Vec::new();
-    };
-    let sigma = pose.rms_px.max(MIN_SIGMA_PX);
-    let mut sigmas: Vec<f64> = proven
+    }
+    settle_flagged(rig, camera, det, name, &tried, corner_sigma)
+}
+
+/// The median σ of the frame's labelled corners (0.1 px without one).
+fn median_sigma(faces: &[FaceDetection]) -> f64 {
+    let mut sigmas: Vec<f64> = faces
         .iter()
         .flat_map(|f| f.corners.iter().map(|c| c.sigma_px))
         .filter(|s| s.is_finite())
         .collect();
     sigmas.sort_by(f64::total_cmp);
-    let corner_sigma = sigmas.get(sigmas.len() / 2).copied().unwrap_or(0.1);
-    let taken: Vec<usize> = det.faces.iter().map(|f| f.face).collect();
+    sigmas.get(sigmas.len() / 2).copied().unwrap_or(0.1)
+}
+
+/// The pose of 2D–3D pairs in `camera`, and its RMS (px).
+fn pose_of(
+    camera: &Camera,
+    points: &[(nalgebra::Vector3<f64>, Vector2<f64>)],
+    name: &str,
+) -> Option<(Pose, f64)> {
+    let view = crate::calib::View {
+        name: name.to_string(),
+        points: points
+            .iter()
+            .map(|&(xyz, uv)| crate::calib::Correspondence { xyz, uv, cov: None })
+            .collect(),
+    };
+    solve_pose(camera, &view)
+        .ok()
+        .map(|p| (p.cam_from_rig, p.rms_px))
+}
+
+/// One labelling of a flagged face: the labelling, its pose, its RMS (px), the rejected grids'
+/// summed best SSR under that pose, and those best fits.
+type Alternative = (Fit, Pose, f64, f64, Vec<Option<Fit>>);
+
+/// The frame's one face, labelled only up to a symmetry, and its rejected grids: every labelling of
+/// that face that fits the camera gives a pose; the rejected grids' best fits under each pose are
+/// summed, and the labelling whose sum beats every other's by [`MIN_LOG_LR`] is taken — if under it
+/// at least one grid is admitted by [`settle_in`]'s rule. Then the face is relabelled and its flag
+/// lifted; otherwise nothing changes.
+fn settle_flagged(
+    rig: &Rig,
+    camera: &Camera,
+    det: &mut FrameDetection,
+    name: &str,
+    tried: &[usize],
+    corner_sigma: f64,
+) -> Vec<Decision> {
+    let face = det.faces[0].clone();
+    let grid: Vec<GridCorner> = face
+        .corners
+        .iter()
+        .map(|c| GridCorner {
+            row: c.row,
+            col: c.col,
+            uv: c.uv,
+        })
+        .collect();
+    let (rows, cols) = dims(&grid);
+    // Each labelling of the face's grid, with its pose, its RMS, the rejected grids' summed best
+    // fit under it, and those best fits.
+    let mut alts: Vec<Alternative> = Vec::new();
+    for l in labellings(rig, rows, cols, &[]) {
+        let points: Vec<_> = grid
+            .iter()
+            .map(|g| {
+                let (r, c) = l.at(rows, cols, g);
+                (rig.faces[l.face].corner_xyz(r, c), g.uv)
+            })
+            .collect();
+        let Some((pose, rms)) = pose_of(camera, &points, name) else {
+            continue;
+        };
+        let bests: Vec<Option<Fit>> = tried
+            .iter()
+            .map(|&i| {
+                fits(rig, camera, &pose, &det.rejected[i].corners, &[l.face])
+                    .into_iter()
+                    .min_by(|a, b| a.ssr.total_cmp(&b.ssr))
+            })
+            .collect();
+        let sum: f64 = bests
+            .iter()
+            .map(|b| b.map_or(f64::INFINITY, |b| b.ssr))
+            .sum();
+        alts.push((l, pose, rms, sum, bests));
+    }
+    // Labellings the face alone does not fit (mirrors, shifts off the lattice) are no alternatives.
+    let best_rms = alts.iter().map(|a| a.2).fold(f64::INFINITY, f64::min);
+    alts.retain(|a| a.2 <= ADMIT_SIGMAS * best_rms.max(MIN_SIGMA_PX) && a.3.is_finite());
+    alts.sort_by(|a, b| a.3.total_cmp(&b.3));
+    let Some((best, pose, rms, sum, _)) = alts.first().cloned() else {
+        return Vec::new();
+    };
+    let sigma = rms.max(MIN_SIGMA_PX);
+    let lr = |a: &Alternative| (a.3 - sum) / (2.0 * sigma * sigma);
+    // Rivals within the margin that are the best joint labelling moved by a similarity (a symmetry
+    // of the rig, e.g. the half turn exchanging a wrapped sheet's two faces) teach the camera the
+    // same: the joint labelling is taken, its pose flagged. Any other rival leaves the frame as is.
+    let joint = |a: &Alternative| -> Option<Vec<nalgebra::Vector3<f64>>> {
+        let mut xyz: Vec<_> = grid
+            .iter()
+            .map(|g| {
+                let (r, c) = a.0.at(rows, cols, g);
+                rig.faces[a.0.face].corner_xyz(r, c)
+            })
+            .collect();
+        for (&i, b) in tried.iter().zip(&a.4) {
+            let b = (*b)?;
+            let corners = &det.rejected[i].corners;
+            let (gr, gc) = dims(corners);
+            xyz.extend(corners.iter().map(|g| {
+                let (r, c) = b.at(gr, gc, g);
+                rig.faces[b.face].corner_xyz(r, c)
+            }));
+        }
+        Some(xyz)
+    };
+    let rivals: Vec<_> = alts[1..].iter().filter(|a| lr(a) < MIN_LOG_LR).collect();
+    let symmetric = !rivals.is_empty()
+        && joint(&alts[0]).is_some_and(|b| {
+            rivals
+                .iter()
+                .all(|a| joint(a).is_some_and(|x| super::identity::similar(&b, &x)))
+        });
+    let log_lr = alts[1..]
+        .iter()
+        .filter(|a| !(symmetric && rivals.iter().any(|r| std::ptr::eq(*r, *a))))
+        .map(lr)
+        .fold(f64::INFINITY, f64::min);
+    let mut trial = det.clone();
+    let relabelled: Vec<LabelledCorner> = face
+        .corners
+        .iter()
+        .zip(&grid)
+        .map(|(c, g)| {
+            let (r, col) = best.at(rows, cols, g);
+            LabelledCorner {
+                row: r,
+                col,
+                xyz: rig.faces[best.face].corner_xyz(r, col),
+                ..*c
+            }
+        })
+        .collect();
+    let face_text = format!(
+        "face '{}' labelled jointly with the frame's other grids by the camera of the other views: log-likelihood ratio {} over the face's next labelling that is not a symmetry of the rig ({MIN_LOG_LR} needed)",
+        rig.faces[best.face].name,
+        if log_lr.is_finite() {
+            format!("{log_lr:.0}")
+        } else {
+            "∞".into()
+        }
+    );
+    let flag = symmetric.then(|| {
+        format!(
+            "labelled jointly with the frame's other grids up to a symmetry of the rig ({} joint labellings fit the camera alike, each one similarity from the others)",
+            rivals.len() + 1
+        )
+    });
+    trial.faces[0] = FaceDetection {
+        face: best.face,
+        corners: relabelled,
+        ambiguous_pose: flag.clone(),
+        identity: Some(face_text.clone()),
+        ..face
+    };
+    let mut decisions = settle_in(
+        rig,
+        camera,
+        &pose,
+        sigma,
+        corner_sigma,
+        &mut trial,
+        tried,
+        &[best.face],
+    );
+    if log_lr >= MIN_LOG_LR && decisions.iter().any(|d| d.admitted.is_some()) {
+        if flag.is_some() {
+            for f in &mut trial.faces[1..] {
+                f.ambiguous_pose = flag.clone();
+            }
+        }
+        *det = trial;
+        for d in &mut decisions {
+            d.text = format!("{} ({face_text})", d.text);
+        }
+        return decisions;
+    }
+    tried
+        .iter()
+        .map(|&i| Decision {
+            rejection: i,
+            admitted: None,
+            text: format!(
+                "left out: the frame's one face is labelled only up to a symmetry and the camera does not settle it with this grid ({face_text}; {})",
+                decisions
+                    .iter()
+                    .find(|d| d.rejection == i)
+                    .map_or("", |d| d.text.as_str())
+            ),
+        })
+        .collect()
+}
+
+/// Settle the grids `tried` of `det` in `pose` (see the module doc); faces in `taken` are not
+/// candidates.
+#[allow(clippy::too_many_arguments)]
+fn settle_in(
+    rig: &Rig,
+    camera: &Camera,
+    pose: &Pose,
+    sigma: f64,
+    corner_sigma: f64,
+    det: &mut FrameDetection,
+    tried: &[usize],
+    taken: &[usize],
+) -> Vec<Decision> {
     let mut decisions = Vec::new();
     let mut admitted: Vec<(usize, FaceDetection)> = Vec::new();
-    for i in tried {
+    for &i in tried {
         let corners = &det.rejected[i].corners;
-        let mut fits = fits(rig, camera, &pose.cam_from_rig, corners, &taken);
+        let mut fits = fits(rig, camera, pose, corners, taken);
         fits.sort_by(|a, b| a.ssr.total_cmp(&b.ssr));
         let n = corners.len() as f64;
         let Some(best) = fits.first().copied() else {
@@ -203,6 +422,49 @@ fn turned(
     }
 }
 
+/// The size of a grid given by its corners' indices.
+fn dims(corners: &[GridCorner]) -> (usize, usize) {
+    let rows = corners.iter().map(|g| g.row).max().map_or(0, |m| m + 1);
+    let cols = corners.iter().map(|g| g.col).max().map_or(0, |m| m + 1);
+    (rows, cols)
+}
+
+impl Fit {
+    /// The face indices of grid corner `g` under this labelling (grid of `rows × cols`).
+    fn at(&self, rows: usize, cols: usize, g: &GridCorner) -> (usize, usize) {
+        let ((r, c), _) = turned(self.sym, rows, cols, g.row, g.col);
+        (r + self.offset.0, c + self.offset.1)
+    }
+}
+
+/// Every labelling of a `rows × cols` grid on a checkerboard face not in `taken`: face, symmetry
+/// and offset keeping the grid inside the face (`ssr` 0).
+fn labellings(rig: &Rig, rows: usize, cols: usize, taken: &[usize]) -> Vec<Fit> {
+    let mut out = Vec::new();
+    for (fi, face) in rig.faces.iter().enumerate() {
+        if taken.contains(&fi) || face.charuco.is_some() {
+            continue;
+        }
+        for sym in 0..8u8 {
+            let (_, (tr, tc)) = turned(sym, rows, cols, 0, 0);
+            if tr > face.rows || tc > face.cols {
+                continue;
+            }
+            for or in 0..=face.rows - tr {
+                for oc in 0..=face.cols - tc {
+                    out.push(Fit {
+                        face: fi,
+                        sym,
+                        offset: (or, oc),
+                        ssr: 0.0,
+                    });
+                }
+            }
+        }
+    }
+    out
+}
+
 /// Every labelling of `corners` on a face not in `taken` that faces the camera, with its residuals.
 fn fits(
     rig: &Rig,
@@ -211,47 +473,44 @@ fn fits(
     corners: &[GridCorner],
     taken: &[usize],
 ) -> Vec<Fit> {
-    let rows = corners.iter().map(|g| g.row).max().map_or(0, |m| m + 1);
-    let cols = corners.iter().map(|g| g.col).max().map_or(0, |m| m + 1);
+    let (rows, cols) = dims(corners);
+    let mut predicted: Vec<Option<Vec<Option<Vector2<f64>>>>> = vec![None; rig.faces.len()];
     let mut out = Vec::new();
-    for (fi, face) in rig.faces.iter().enumerate() {
-        if taken.contains(&fi) || face.charuco.is_some() {
-            continue;
+    for mut l in labellings(rig, rows, cols, taken) {
+        let face = &rig.faces[l.face];
+        let slot = &mut predicted[l.face];
+        if slot.is_none() {
+            // The face's printed side must face the camera; then the predicted image position of
+            // each of its corners (None: not projectable).
+            let centre = face.corner_xyz(face.rows / 2, face.cols / 2);
+            let facing = face.normal().dot(&(pose.centre() - centre)) > 0.0;
+            *slot = Some(if facing {
+                (0..face.rows)
+                    .flat_map(|r| (0..face.cols).map(move |c| (r, c)))
+                    .map(|(r, c)| camera.project(pose, &face.corner_xyz(r, c)).ok())
+                    .collect()
+            } else {
+                Vec::new()
+            });
         }
-        // The face's printed side must face the camera.
-        let centre = face.corner_xyz(face.rows / 2, face.cols / 2);
-        let to_camera = pose.centre() - centre;
-        if face.normal().dot(&to_camera) <= 0.0 {
+        let Some(pred) = slot.as_ref().filter(|p| !p.is_empty()) else {
             continue;
-        }
-        // Predicted image positions of every corner of the face (None: not projectable).
-        let predicted: Vec<Option<Vector2<f64>>> = (0..face.rows)
-            .flat_map(|r| (0..face.cols).map(move |c| (r, c)))
-            .map(|(r, c)| camera.project(pose, &face.corner_xyz(r, c)).ok())
-            .collect();
-        for sym in 0..8u8 {
-            let (_, (tr, tc)) = turned(sym, rows, cols, 0, 0);
-            if tr > face.rows || tc > face.cols {
-                continue;
-            }
-            for or in 0..=face.rows - tr {
-                'offset: for oc in 0..=face.cols - tc {
-                    let mut ssr = 0.0;
-                    for g in corners {
-                        let ((r, c), _) = turned(sym, rows, cols, g.row, g.col);
-                        let Some(p) = predicted[(r + or) * face.cols + (c + oc)] else {
-                            continue 'offset;
-                        };
-                        ssr += (g.uv - p).norm_squared();
-                    }
-                    out.push(Fit {
-                        face: fi,
-                        sym,
-                        offset: (or, oc),
-                        ssr,
-                    });
+        };
+        let mut ssr = 0.0;
+        let mut ok = true;
+        for g in corners {
+            let (r, c) = l.at(rows, cols, g);
+            match pred[r * face.cols + c] {
+                Some(p) => ssr += (g.uv - p).norm_squared(),
+                None => {
+                    ok = false;
+                    break;
                 }
             }
+        }
+        if ok {
+            l.ssr = ssr;
+            out.push(l);
         }
     }
     out
@@ -266,13 +525,11 @@ fn labelled(
     decision: &str,
 ) -> FaceDetection {
     let face = &rig.faces[fit.face];
-    let rows = corners.iter().map(|g| g.row).max().map_or(0, |m| m + 1);
-    let cols = corners.iter().map(|g| g.col).max().map_or(0, |m| m + 1);
+    let (rows, cols) = dims(corners);
     let corners = corners
         .iter()
         .map(|g| {
-            let ((r, c), _) = turned(fit.sym, rows, cols, g.row, g.col);
-            let (r, c) = (r + fit.offset.0, c + fit.offset.1);
+            let (r, c) = fit.at(rows, cols, g);
             LabelledCorner {
                 row: r,
                 col: c,
