@@ -135,4 +135,50 @@ fn main() {
         "uniform noise / cube (1280×960, medians of this run): {:.3}",
         noise / cube
     );
+    settle_bench(&rig, reps);
+}
+
+/// Issue 28: settling a frame's rejected grid with a known camera (`detect::settle`), on the cube
+/// turned against the frame's border (a face cut by it; wide lens, k1 −0.3): median per frame, and
+/// what a run of 20 such frames spends on it.
+fn settle_bench(rig: &Rig, reps: usize) {
+    use cubecal::camera::Pose;
+    use nalgebra::Vector3;
+    let camera = Camera::pinhole([1280, 960], 900.0, 900.0, 639.5, 479.5)
+        .with_distortion(DistortionModel::Brown5, &[-0.3]);
+    let settings = RenderSettings {
+        blur_sigma_px: 1.0,
+        noise_sigma: 2.0,
+        gamma: 2.2,
+        vignetting: 0.3,
+        seed: 19,
+        ..RenderSettings::default()
+    };
+    let turn = Pose::from_axis_angle(
+        Vector3::new(0.05, 1.0, -0.1).normalize() * (-26.0_f64).to_radians(),
+        Vector3::zeros(),
+    );
+    let pose = turn.compose(&default_view(rig, &camera));
+    let img = render(rig, &camera, &pose, &settings, 1).unwrap();
+    let mut finder = CornerFinder::new().unwrap();
+    let det = detect(&mut finder, &img, rig).unwrap();
+    let mut admitted = 0;
+    let mut times: Vec<Duration> = (0..reps.max(3))
+        .map(|_| {
+            let mut d = det.clone();
+            let t = Instant::now();
+            let decisions = cubecal::detect::settle::settle(rig, &camera, &mut d, "bench");
+            let e = t.elapsed();
+            admitted = decisions.iter().filter(|d| d.admitted.is_some()).count();
+            e
+        })
+        .collect();
+    times.sort();
+    let median = times[times.len() / 2].as_secs_f64() * 1e3;
+    println!(
+        "settle, cube against the border (1280×960): median {median:.3} ms per frame over {} runs ({} rejected grid(s), {admitted} admitted); a 20-view run of such frames: {:.1} ms",
+        times.len(),
+        det.rejected.len(),
+        20.0 * median
+    );
 }
