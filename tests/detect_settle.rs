@@ -135,4 +135,36 @@ fn a_photo_run_admits_settled_grids_and_calibrates_the_rendered_camera() {
         (cx - truth.cx()).abs() < 0.2 && (cy - truth.cy()).abs() < 0.2,
         "cx {cx} cy {cy}"
     );
+    // `detect --profile` on one of those frames settles the same grid with the run's profile, and
+    // says so with its margin; without the profile the grid stays out.
+    let detect = |profile: bool| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_cubecal"));
+        cmd.args([
+            "detect",
+            "--rig",
+            concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/fixtures/rigs/cube_outside.toml"
+            ),
+        ]);
+        if profile {
+            cmd.arg("--profile")
+                .arg(out.path().join("run/profile.json"));
+        }
+        let o = cmd.arg(&frames[1]).output().unwrap();
+        assert!(o.status.success());
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let with = detect(true);
+    assert!(
+        with.contains("3 faces")
+            && with.contains("settled by the camera")
+            && with.contains("log-likelihood ratio"),
+        "{with}"
+    );
+    let without = detect(false);
+    assert!(
+        without.contains("2 faces") && !without.contains("settled by the camera"),
+        "{without}"
+    );
 }

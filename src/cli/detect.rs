@@ -40,6 +40,12 @@ pub struct DetectArgs {
     /// `<image file stem>_overlay.png` per image.
     #[arg(long, value_name = "OUT")]
     pub overlay: Option<PathBuf>,
+    /// A profile of this camera (a run's profile.json, or a store's current.json): grids a frame
+    /// alone leaves out are settled by it, as a calibration run settles them with the camera of its
+    /// other views — each labelling scored in the pose of the frame's proven faces, admitted within
+    /// 3σ and by a log-likelihood ratio of 50 over every other; each decision is printed.
+    #[arg(long, value_name = "PROFILE")]
+    pub profile: Option<PathBuf>,
 }
 
 /// Errors of `cubecal detect` that are not library errors.
@@ -229,13 +235,38 @@ pub fn run(args: DetectArgs, out: Output) -> anyhow::Result<u8> {
         Some(target) => Some(overlay_paths(target, &args.images)?),
         None => None,
     };
+    let camera = match &args.profile {
+        Some(path) => {
+            let profile = cubecal::profile::read_document(path)?;
+            let camera = cubecal::report::analysis::camera_from_report(&profile.calibration)
+                .with_context(|| format!("the camera of profile {}", path.display()))?;
+            Some((path, camera))
+        }
+        None => None,
+    };
     let mut finder = CornerFinder::new()?;
     let mut done = Vec::with_capacity(args.images.len());
     for (k, path) in args.images.iter().enumerate() {
         let img = load_grey(path)?;
         let started = Instant::now();
-        let detection = detect::detect(&mut finder, &img, &rig)
+        let mut detection = detect::detect(&mut finder, &img, &rig)
             .with_context(|| format!("detecting corners in {}", path.display()))?;
+        if let Some((profile, camera)) = &camera {
+            if camera.image_size != [img.width(), img.height()] {
+                return Err(UsageError(format!(
+                    "{} is {}×{}, the camera of profile {} is for {}×{} images",
+                    path.display(),
+                    img.width(),
+                    img.height(),
+                    profile.display(),
+                    camera.image_size[0],
+                    camera.image_size[1]
+                ))
+                .into());
+            }
+            let name = path.display().to_string();
+            cubecal::detect::settle::settle(&rig, camera, &mut detection, &name);
+        }
         let time_ms = started.elapsed().as_secs_f64() * 1e3;
         let overlay = match &overlays {
             Some(paths) => {
@@ -337,7 +368,8 @@ fn print_human(p: &Processed, rig: &Rig) -> anyhow::Result<()> {
             outln!(
                 "    pose not trusted (labels certain up to a motion that moves the pose only): {why}"
             )?;
-        } else if let Some(how) = &f.identity {
+        }
+        if let Some(how) = &f.identity {
             outln!("    identity {how}")?;
         }
     }

@@ -292,7 +292,7 @@ fn settle_flagged(
         }
         return decisions;
     }
-    tried
+    let out: Vec<Decision> = tried
         .iter()
         .map(|&i| Decision {
             rejection: i,
@@ -305,7 +305,12 @@ fn settle_flagged(
                     .map_or("", |d| d.text.as_str())
             ),
         })
-        .collect()
+        .collect();
+    for d in &out {
+        let r = &mut det.rejected[d.rejection];
+        r.reason = format!("{}; {}", r.reason, d.text);
+    }
+    out
 }
 
 /// Settle the grids `tried` of `det` in `pose` (see the module doc); faces in `taken` are not
@@ -385,6 +390,11 @@ fn settle_in(
                 d.text
             );
         }
+    }
+    // Each grid left out says why in its rejection too (detect's output, the overlay, the report).
+    for d in decisions.iter().filter(|d| d.admitted.is_none()) {
+        let r = &mut det.rejected[d.rejection];
+        r.reason = format!("{}; {}", r.reason, d.text);
     }
     let mut removed: Vec<usize> = Vec::new();
     for (i, face) in admitted {
