@@ -24,8 +24,11 @@
 //! windows take the polynomial, the refitted corners are those of the exact map to 1.2e-6 px
 //! (median 6e-8), and the photo run's instructions fell from 1540 M to 1462 M (the refit's from
 //! 461 M to 381 M; callgrind, `cubecal calibrate --images`); on the k1 −0.3 periphery renders the
-//! corners agree to 1e-5 px (`tests/detect_periphery.rs`). [`refine_with_camera_exactly`] keeps the
-//! pixel-by-pixel map as the reference.
+//! corners agree to 1e-5 px (`tests/detect_periphery.rs`). Elsewhere (`examples/lens_refit_eval.rs`):
+//! OpenCV right photos, pose2sim cam01, the periphery −0.3 and hard renders to ≤ 1.2e-6 px; pycalib
+//! 10×7 to 5.2e-4 px at most (median 1.6e-8), at corners whose refit moves them by many σ (an
+//! ill-conditioned fit amplifies the map's 1e-4 px), its calibration changed by ≤ 0.003 σ.
+//! [`refine_with_camera_exactly`] keeps the pixel-by-pixel map as the reference.
 //!
 //! **Not skipped.** Skipping the refit where the lens bends a window by less than a tenth of the
 //! corner's σ ([`lens_bend_px`]) was measured and rejected (`examples/lens_refit_eval.rs`): the
