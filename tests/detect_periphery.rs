@@ -7,6 +7,7 @@
 
 use cubecal::calib::{SolveOptions, solve};
 use cubecal::detect::score::{Bias, EvalSet, FaceScore, Summary, in_border_band, score};
+use cubecal::detect::undistorted::refine_with_camera_exactly;
 use cubecal::detect::{CornerFinder, FrameDetection, detect, refine_with_camera};
 use cubecal::render::{GroundTruth, ground_truth, render};
 use cubecal::rig::Rig;
@@ -95,6 +96,63 @@ fn peripheral_corners_at_k1_minus_0_3_carry_no_bias() {
         assert_eq!(below.mislabelled, 0);
         assert!(below.rms_px <= 0.03, "{below}");
     }
+}
+
+/// The refit maps most windows through a polynomial of the lens (25 exact points a window instead of
+/// one per pixel, see `detect::undistorted`); under k1 −0.3, where every window bends by 0.2–0.5 px,
+/// its corners are those of the pixel-by-pixel map to 1e-5 px, and as close to the ground truth.
+#[test]
+fn the_polynomial_lens_map_refits_the_corners_as_the_exact_map_does() {
+    let set = EvalSet::PeripheryK1m03;
+    let rig = rig();
+    let frames = frames(set, &rig, 8);
+    let size = set.camera().image_size;
+    let views: Vec<_> = (frames.iter().enumerate())
+        .filter(|(_, f)| !f.det.faces.is_empty())
+        .map(|(k, f)| f.det.to_view(&format!("frame {k}")))
+        .collect();
+    let camera = solve(&views, size, &SolveOptions::default())
+        .unwrap()
+        .camera;
+    let (mut fast, mut exact) = (Vec::new(), Vec::new());
+    let (mut windows, mut polynomial) = (0, 0);
+    for f in &frames {
+        let (mut a, mut b) = (f.det.clone(), f.det.clone());
+        let r = refine_with_camera(&f.img, &mut a, &camera).unwrap();
+        refine_with_camera_exactly(&f.img, &mut b, &camera).unwrap();
+        (windows, polynomial) = (windows + r.refitted, polynomial + r.local);
+        fast.push(a);
+        exact.push(b);
+    }
+    assert!(
+        polynomial as f64 >= 0.9 * windows as f64,
+        "{polynomial} of {windows}"
+    );
+    let mut largest: f64 = 0.0;
+    for (a, b) in fast.iter().zip(&exact) {
+        let a = a.faces.iter().flat_map(|f| f.corners.iter());
+        let b = b.faces.iter().flat_map(|f| f.corners.iter());
+        for (a, b) in a.zip(b) {
+            largest = largest.max((a.uv - b.uv).norm());
+        }
+    }
+    assert!(largest <= 1e-5, "polynomial − exact map: {largest:e} px");
+    let (s_fast, s_exact) = (scores(&rig, &frames, &fast), scores(&rig, &frames, &exact));
+    let (fast, exact) = (
+        Summary::of(&s_fast, 0.0, 75.0),
+        Summary::of(&s_exact, 0.0, 75.0),
+    );
+    eprintln!("k1 −0.3 refit, polynomial map: {fast}; exact map: {exact}");
+    assert!(exact.corners >= 200, "{exact}");
+    assert_eq!(fast.corners, exact.corners);
+    assert!(
+        (fast.rms_px - exact.rms_px).abs() <= 1e-5,
+        "{fast} vs {exact}"
+    );
+    let outer = |s: &[cubecal::detect::score::FaceScore]| {
+        Bias::of(s, size, 75.0, |t| in_border_band(t, size, 0.1)).mean_px()
+    };
+    assert!((outer(&s_fast) - outer(&s_exact)).abs() <= 1e-5);
 }
 
 #[test]
