@@ -732,6 +732,7 @@ fn settle_candidates(
     poses: &mut [PoseData],
     image_size: [u32; 2],
     n_fit: usize,
+    sink: &mut dyn EventSink,
 ) -> Vec<String> {
     let has_candidates = poses.iter().any(|p| {
         p.view.is_some()
@@ -752,7 +753,10 @@ fn settle_candidates(
     let Ok(opts) = spec.config.solve_options("station config") else {
         return Vec::new();
     };
-    let Ok(cal) = crate::calib::solve(&fit, image_size, &opts) else {
+    // Watchdog pings continue through the solve (a slow station computer takes seconds).
+    let Ok(cal) = notify::alive_during(sink, SOLVE_LIMIT, || {
+        crate::calib::solve(&fit, image_size, &opts)
+    }) else {
         return Vec::new();
     };
     let mut notes = Vec::new();
@@ -828,6 +832,7 @@ fn solve_and_judge(
         } else {
             0
         }),
+        sink,
     );
     let mut accepted: Vec<(View, Vec<String>, Option<String>)> = poses
         .iter()
