@@ -22,15 +22,19 @@ fn cube_frame(rig: &Rig, w: u32, h: u32, f: f64) -> GrayImage {
         (f64::from(h) - 1.0) / 2.0,
     )
     .with_distortion(DistortionModel::Brown5, &[-0.1]);
-    let settings = RenderSettings {
+    render(rig, &camera, &default_view(rig, &camera), &settings(7), 0).unwrap()
+}
+
+/// The frames' look: blur σ 1, noise σ 2, gamma 2.2, vignetting 0.3.
+fn settings(seed: u64) -> RenderSettings {
+    RenderSettings {
         blur_sigma_px: 1.0,
         noise_sigma: 2.0,
         gamma: 2.2,
         vignetting: 0.3,
-        seed: 7,
+        seed,
         ..RenderSettings::default()
-    };
-    render(rig, &camera, &default_view(rig, &camera), &settings, 0).unwrap()
+    }
 }
 
 /// Time `detect` on `img` and print the figures; returns the median (ms).
@@ -146,20 +150,12 @@ fn settle_bench(rig: &Rig, reps: usize) {
     use nalgebra::Vector3;
     let camera = Camera::pinhole([1280, 960], 900.0, 900.0, 639.5, 479.5)
         .with_distortion(DistortionModel::Brown5, &[-0.3]);
-    let settings = RenderSettings {
-        blur_sigma_px: 1.0,
-        noise_sigma: 2.0,
-        gamma: 2.2,
-        vignetting: 0.3,
-        seed: 19,
-        ..RenderSettings::default()
-    };
     let turn = Pose::from_axis_angle(
         Vector3::new(0.05, 1.0, -0.1).normalize() * (-26.0_f64).to_radians(),
         Vector3::zeros(),
     );
     let pose = turn.compose(&default_view(rig, &camera));
-    let img = render(rig, &camera, &pose, &settings, 1).unwrap();
+    let img = render(rig, &camera, &pose, &settings(19), 1).unwrap();
     let mut finder = CornerFinder::new().unwrap();
     let det = detect(&mut finder, &img, rig).unwrap();
     let mut admitted = 0;

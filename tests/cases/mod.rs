@@ -148,6 +148,14 @@ fn panned(pose: &Pose, axis: Vector3<f64>, deg: f64) -> Pose {
     Pose::from_axis_angle(axis.normalize() * deg.to_radians(), Vector3::zeros()).compose(pose)
 }
 
+/// The first `n` of `base` turned by each camera turn (axis in the camera frame, degrees).
+fn panned_views(base: &Pose, pans: &[([f64; 3], f64)], n: usize) -> Vec<Pose> {
+    pans.iter()
+        .take(n)
+        .map(|&(a, d)| panned(base, Vector3::from(a), d))
+        .collect()
+}
+
 /// The sets, with `n` views each (`n` ≤ 6 for `fill`, `fill-k04` and `cut`, whose views are chosen).
 pub fn cases(n: usize) -> Vec<Case> {
     let mut out = Vec::new();
@@ -223,19 +231,18 @@ pub fn cases(n: usize) -> Vec<Case> {
         let camera = camera(1280, 960, 1100.0, -0.1);
         let base = default_view(&rig, &camera);
         // Camera turns (axis in the camera frame, deg) that push a part of the board out of the frame.
-        let pans: [([f64; 3], f64); 6] = [
-            ([0.05, 1.0, 0.1], 22.0),
-            ([0.05, 1.0, -0.1], -25.0),
-            ([1.0, 0.05, 0.1], 19.0),
-            ([1.0, 0.05, -0.1], -21.0),
-            ([1.0, 1.0, 0.1], 24.0),
-            ([1.0, -1.0, -0.1], -26.0),
-        ];
-        let poses = pans
-            .iter()
-            .take(n)
-            .map(|&(a, d)| panned(&base, Vector3::from(a), d))
-            .collect();
+        let poses = panned_views(
+            &base,
+            &[
+                ([0.05, 1.0, 0.1], 22.0),
+                ([0.05, 1.0, -0.1], -25.0),
+                ([1.0, 0.05, 0.1], 19.0),
+                ([1.0, 0.05, -0.1], -21.0),
+                ([1.0, 1.0, 0.1], 24.0),
+                ([1.0, -1.0, -0.1], -26.0),
+            ],
+            n,
+        );
         out.push(Case {
             name: "cut",
             scene: rig.clone(),
@@ -275,19 +282,18 @@ pub fn cases(n: usize) -> Vec<Case> {
         let rig = rig("cube_outside.toml");
         let camera = camera(1280, 960, 900.0, -0.3);
         let base = default_view(&rig, &camera);
-        let pans: [([f64; 3], f64); 6] = [
-            ([0.05, 1.0, 0.1], 24.0),
-            ([0.05, 1.0, -0.1], -26.0),
-            ([1.0, 0.05, 0.1], 20.0),
-            ([1.0, 0.05, -0.1], -21.0),
-            ([1.0, 1.0, 0.1], 24.0),
-            ([1.0, -1.0, -0.1], -25.0),
-        ];
-        let poses = pans
-            .iter()
-            .take(n)
-            .map(|&(a, d)| panned(&base, Vector3::from(a), d))
-            .collect();
+        let poses = panned_views(
+            &base,
+            &[
+                ([0.05, 1.0, 0.1], 24.0),
+                ([0.05, 1.0, -0.1], -26.0),
+                ([1.0, 0.05, 0.1], 20.0),
+                ([1.0, 0.05, -0.1], -21.0),
+                ([1.0, 1.0, 0.1], 24.0),
+                ([1.0, -1.0, -0.1], -25.0),
+            ],
+            n,
+        );
         out.push(Case {
             name: "cube-cut",
             scene: rig.clone(),
