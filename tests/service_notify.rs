@@ -376,7 +376,13 @@ fn pings_continue_during_a_long_step_until_its_bound() {
     eprintln!(
         "pings at ms {ms:?} after READY; step {STEP:?}, bound {STEP_LIMIT:?}, Alive every {ALIVE_EVERY:?}"
     );
-    assert!(done - start >= STEP, "the step ran {:?}", done - start);
+    // Both times are arrival times of datagrams: READY may arrive a little after the step began
+    // (scheduling on a loaded machine), so the step is measured with 50 ms of slack.
+    assert!(
+        done - start + Duration::from_millis(50) >= STEP,
+        "the step ran {:?}",
+        done - start
+    );
     // Within the bound: a ping at READY, then one per Alive event, ALIVE_EVERY apart (here W/4 <
     // ALIVE_EVERY, so the pacer passes every one; with the unit's W = 30 s, ALIVE_EVERY ≤ W/4 keeps
     // the gaps under W/2).
