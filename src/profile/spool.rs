@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::backend::{Committed, ProfileStore, Provenance};
-use super::store::CommitOptions;
+use super::store::{CommitOptions, read_err, write_err};
 use super::{ProfileError, parse_document, to_document};
 
 /// The spool's file format.
@@ -77,20 +77,6 @@ pub struct Drained {
     pub waiting: usize,
     /// Why the drain stopped early (the store unreachable again), if it did.
     pub stopped: Option<String>,
-}
-
-fn write_err(path: &Path) -> impl FnOnce(std::io::Error) -> ProfileError + '_ {
-    move |source| ProfileError::Write {
-        path: path.to_path_buf(),
-        source,
-    }
-}
-
-fn read_err(path: &Path) -> impl FnOnce(std::io::Error) -> ProfileError + '_ {
-    move |source| ProfileError::Read {
-        path: path.to_path_buf(),
-        source,
-    }
 }
 
 /// `bytes` into `dir/name`: temporary file, fsync, rename, fsync of `dir`.

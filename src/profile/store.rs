@@ -163,14 +163,14 @@ pub fn folder_name(identity: &str) -> String {
     format!("{readable}-{}", &hash[..32])
 }
 
-fn write_err(path: &Path) -> impl FnOnce(std::io::Error) -> ProfileError + '_ {
+pub(super) fn write_err(path: &Path) -> impl FnOnce(std::io::Error) -> ProfileError + '_ {
     move |source| ProfileError::Write {
         path: path.to_path_buf(),
         source,
     }
 }
 
-fn read_err(path: &Path) -> impl FnOnce(std::io::Error) -> ProfileError + '_ {
+pub(super) fn read_err(path: &Path) -> impl FnOnce(std::io::Error) -> ProfileError + '_ {
     move |source| ProfileError::Read {
         path: path.to_path_buf(),
         source,
