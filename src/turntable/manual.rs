@@ -118,14 +118,7 @@ impl<O: Operator> Turntable for ManualTurntable<O> {
             return Err(TurntableError::NoTiltAxis { requested: target });
         };
         let mark = self.mark(Degrees::checked(target.0)?);
-        if mark.0 < min.0 || mark.0 > max.0 {
-            return Err(TurntableError::BeyondLimit {
-                axis: "tilt",
-                requested: target,
-                min,
-                max,
-            });
-        }
+        super::check_tilt(mark, target, (min, max))?;
         self.ask(format!("tilt the cradle from {from:.1} to {mark:.1}"))?;
         self.tilt = Some(((min, max), mark));
         Ok(mark)
@@ -146,14 +139,7 @@ impl<O: Operator> Turntable for ManualTurntable<O> {
         let tilt = match (tilt, self.tilt) {
             (Some(t), Some(((min, max), _))) => {
                 let mark = self.mark(Degrees::checked(t.0)?);
-                if mark.0 < min.0 || mark.0 > max.0 {
-                    return Err(TurntableError::BeyondLimit {
-                        axis: "tilt",
-                        requested: t,
-                        min,
-                        max,
-                    });
-                }
+                super::check_tilt(mark, t, (min, max))?;
                 Some(mark)
             }
             (Some(t), None) => return Err(TurntableError::NoTiltAxis { requested: t }),

@@ -486,6 +486,24 @@ pub(crate) fn nonzero(field: &'static str, d: Duration) -> Result<(), TurntableE
     }
 }
 
+/// Whether `position` (the tilt a stage would reach for `requested`) lies within the tilt axis's
+/// `[min, max]`; else [`TurntableError::BeyondLimit`] naming the request.
+pub(crate) fn check_tilt(
+    position: Degrees,
+    requested: Degrees,
+    (min, max): (Degrees, Degrees),
+) -> Result<(), TurntableError> {
+    if position.0 < min.0 || position.0 > max.0 {
+        return Err(TurntableError::BeyondLimit {
+            axis: "tilt",
+            requested,
+            min,
+            max,
+        });
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 mod tests {

@@ -90,15 +90,7 @@ impl Turntable for TiltStage {
     }
 
     fn tilt_to(&mut self, target: Degrees) -> Result<Degrees, TurntableError> {
-        let (min, max) = self.limits;
-        if target.0 < min.0 || target.0 > max.0 {
-            return Err(TurntableError::BeyondLimit {
-                axis: "tilt",
-                requested: target,
-                min,
-                max,
-            });
-        }
+        super::check_tilt(target, target, self.limits)?;
         self.tilt.move_to(target)
     }
 }
