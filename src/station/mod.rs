@@ -822,18 +822,16 @@ fn solve_and_judge(
     let cfg = spec.config;
     let image_size = [info.width, info.height];
     let mut poses = poses;
+    // The last `held_out` views check the calibration (when enough views remain to fit); settling
+    // candidates adds faces to views and never adds or drops a view, so the split holds throughout.
     let n_views = poses.iter().filter(|p| p.view.is_some()).count();
-    let settled = settle_candidates(
-        spec,
-        &mut poses,
-        image_size,
-        n_views.saturating_sub(if n_views > cfg.plan.held_out + 1 {
-            cfg.plan.held_out
-        } else {
-            0
-        }),
-        sink,
-    );
+    let n_held = if n_views > cfg.plan.held_out + 1 {
+        cfg.plan.held_out
+    } else {
+        0
+    };
+    let n_fit = n_views - n_held;
+    let settled = settle_candidates(spec, &mut poses, image_size, n_fit, sink);
     let mut accepted: Vec<(View, Vec<String>, Option<String>)> = poses
         .iter()
         .filter_map(|p| {
@@ -842,12 +840,6 @@ fn solve_and_judge(
                 .map(|(v, f)| (v.clone(), f.clone(), p.record.frame.clone()))
         })
         .collect();
-    let n_held = if accepted.len() > cfg.plan.held_out + 1 {
-        cfg.plan.held_out
-    } else {
-        0
-    };
-    let n_fit = accepted.len() - n_held;
     let mut fit: Vec<View> = accepted[..n_fit].iter().map(|a| a.0.clone()).collect();
     let mut held: Vec<View> = accepted[n_fit..].iter().map(|a| a.0.clone()).collect();
     // observations.json: the accepted views with faces, frames and held-out marks.
