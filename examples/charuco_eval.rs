@@ -19,7 +19,7 @@ use anyhow::Context;
 use cubecal::camera::Pose;
 use cubecal::detect::score::{EvalSet, score};
 use cubecal::detect::{CornerFinder, charuco, detect};
-use cubecal::render::{frame_paths, ground_truth, render, write_frame};
+use cubecal::render::cached_frame;
 use cubecal::rig::Rig;
 use nalgebra::Vector3;
 
@@ -67,15 +67,7 @@ fn main() -> anyhow::Result<()> {
     let (mut labelled, mut wrong, mut visible, mut sq, mut count) = (0, 0, 0, 0.0, 0);
     let mut times = Vec::new();
     for (k, pose) in poses.iter().enumerate() {
-        let (png, _) = frame_paths(&dir, k as u64);
-        let truth = ground_truth(&rig, &camera, pose, &settings, k as u64);
-        let img = if png.exists() {
-            image::open(&png)?.to_luma8()
-        } else {
-            let img = render(&rig, &camera, pose, &settings, k as u64)?;
-            write_frame(&dir, &img, &truth)?;
-            img
-        };
+        let (img, truth) = cached_frame(&dir, &rig, &camera, pose, &settings, k as u64)?;
         let t = Instant::now();
         let det = detect(&mut finder, &img, &rig)?;
         times.push(t.elapsed().as_secs_f64() * 1e3);

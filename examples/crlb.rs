@@ -28,7 +28,7 @@ use cubecal::detect::crlb::{
 use cubecal::detect::refine::{refine_near_border, refine_near_border_with_window};
 use cubecal::detect::score::{EvalSet, MISLABEL_PX, score};
 use cubecal::detect::{CornerFinder, detect};
-use cubecal::render::{frame_paths, ground_truth, render, write_frame};
+use cubecal::render::cached_frame;
 use cubecal::rig::Rig;
 use nalgebra::{Matrix2, Vector2};
 use rand::SeedableRng;
@@ -122,15 +122,7 @@ fn main() -> anyhow::Result<()> {
         if frames.as_ref().is_some_and(|f| !f.contains(&k)) {
             continue;
         }
-        let (png, _) = frame_paths(&dir, k as u64);
-        let truth = ground_truth(&rig, &camera, pose, &settings, k as u64);
-        let img = if png.exists() {
-            image::open(&png)?.to_luma8()
-        } else {
-            let img = render(&rig, &camera, pose, &settings, k as u64)?;
-            write_frame(&dir, &img, &truth)?;
-            img
-        };
+        let (img, truth) = cached_frame(&dir, &rig, &camera, pose, &settings, k as u64)?;
         let det = detect(&mut finder, &img, &rig)?;
         let gt: HashMap<(usize, usize, usize), Vector2<f64>> = truth
             .visible()

@@ -896,6 +896,35 @@ pub fn frame_paths(dir: &Path, index: u64) -> (PathBuf, PathBuf) {
     )
 }
 
+/// Frame `frame` of `rig` seen by `camera` from `cam_from_rig`, rendered once into `dir` (created if
+/// missing) and read back on later calls while its ground truth — pose, camera, settings — is the
+/// same: the frame cache of the tests and examples that score the detector against the truth.
+pub fn cached_frame(
+    dir: &Path,
+    rig: &Rig,
+    camera: &Camera,
+    cam_from_rig: &Pose,
+    settings: &RenderSettings,
+    frame: u64,
+) -> Result<(GrayImage, GroundTruth), SyntheticError> {
+    let truth = ground_truth(rig, camera, cam_from_rig, settings, frame);
+    let (png, json) = frame_paths(dir, frame);
+    let same = std::fs::read_to_string(&json)
+        .ok()
+        .and_then(|s| serde_json::from_str::<serde_json::Value>(&s).ok())
+        .is_some_and(|v| serde_json::to_value(&truth).ok() == Some(v));
+    if same && let Ok(img) = image::open(&png) {
+        return Ok((img.to_luma8(), truth));
+    }
+    std::fs::create_dir_all(dir).map_err(|source| SyntheticError::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let img = render(rig, camera, cam_from_rig, settings, frame)?;
+    write_frame(dir, &img, &truth)?;
+    Ok((img, truth))
+}
+
 /// Write a frame's PNG and ground-truth JSON atomically into `dir`; returns their paths.
 pub fn write_frame(
     dir: &Path,

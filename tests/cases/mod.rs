@@ -19,13 +19,12 @@
 //!   pattern continuous across the fold, one wall running off the frame, k1 −0.3 at a wide angle).
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use cubecal::camera::{Camera, DistortionModel, Pose};
 use cubecal::render::correspondences::look_at;
 use cubecal::render::{
-    GroundTruth, Palette, RenderSettings, default_view, frame_paths, ground_truth, random_poses,
-    render, write_frame,
+    GroundTruth, Palette, RenderSettings, cached_frame, default_view, random_poses,
 };
 use cubecal::rig::Rig;
 use image::GrayImage;
@@ -363,32 +362,13 @@ pub fn cases(n: usize) -> Vec<Case> {
 
 /// Frame `k` of `case` and its ground truth, rendered once into `cache/<case>/`.
 pub fn frame(case: &Case, k: usize, cache: &Path) -> (GrayImage, GroundTruth) {
-    let dir: PathBuf = cache.join(case.name);
-    std::fs::create_dir_all(&dir).expect("cache directory");
-    let truth = ground_truth(
-        &case.scene,
-        &case.camera,
-        &case.poses[k],
-        &case.settings,
-        k as u64,
-    );
-    let (png, json) = frame_paths(&dir, k as u64);
-    // A cached frame is used only if it was rendered from the same truth (pose, camera, settings).
-    let same = std::fs::read_to_string(&json)
-        .ok()
-        .and_then(|s| serde_json::from_str::<serde_json::Value>(&s).ok())
-        .is_some_and(|v| serde_json::to_value(&truth).ok() == Some(v));
-    if same && let Ok(img) = image::open(&png) {
-        return (img.to_luma8(), truth);
-    }
-    let img = render(
+    cached_frame(
+        &cache.join(case.name),
         &case.scene,
         &case.camera,
         &case.poses[k],
         &case.settings,
         k as u64,
     )
-    .expect("render");
-    write_frame(&dir, &img, &truth).expect("write frame");
-    (img, truth)
+    .expect("render the frame into the cache")
 }
