@@ -36,6 +36,19 @@ fn opts() -> CommitOptions {
     CommitOptions { jump_sigma: 5.0 }
 }
 
+/// `count` passing profiles of camera `id` committed to `store`, runs `<run>0`, `<run>1`, ….
+fn commit_passing(store: &impl ProfileStore, id: &str, count: u64, run: &str) {
+    for n in 0..count {
+        store
+            .commit_run(
+                &profile(id, n, true),
+                &opts(),
+                &provenance(&format!("{run}{n}")),
+            )
+            .unwrap_or_else(|e| panic!("{e}"));
+    }
+}
+
 /// A migrated database `name` and a store connected to it, or `None` when PostgreSQL is absent.
 fn store(name: &str) -> Option<(PgStore, String)> {
     let cluster = pg::cluster()?;
@@ -493,15 +506,7 @@ fn a_read_only_role_can_get_profiles_but_not_commit() {
     // the station commits
     let station = PgStore::connect(&as_role("cubecal_station"), Some("station-pw".into()))
         .unwrap_or_else(|e| panic!("{e}"));
-    for n in 0..2 {
-        station
-            .commit_run(
-                &profile(id, n, true),
-                &opts(),
-                &provenance(&format!("roles-{n}")),
-            )
-            .unwrap_or_else(|e| panic!("{e}"));
-    }
+    commit_passing(&station, id, 2, "roles-");
 
     // the reader gets the profile, from the command line too
     let reader = PgStore::connect(&as_role("cubecal_reader"), Some("reader-pw".into()))
@@ -822,15 +827,7 @@ fn the_profile_report_is_drawn_from_the_database_with_its_history() {
         return;
     };
     let id = "usb:046d:0825:REPORT";
-    for n in 0..3 {
-        store
-            .commit_run(
-                &profile(id, n, true),
-                &opts(),
-                &provenance(&format!("r{n}")),
-            )
-            .unwrap_or_else(|e| panic!("{e}"));
-    }
+    commit_passing(&store, id, 3, "r");
     let tmp = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
     let html = tmp.path().join("report.html");
     let out = Command::new(env!("CARGO_BIN_EXE_cubecal"))

@@ -4,9 +4,13 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stderr)]
 
+#[path = "support/scripted.rs"]
+mod scripted;
+use scripted::Scripted;
+
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use cubecal::capture::synthetic::{AngleCell, TurntableScene};
@@ -182,17 +186,6 @@ fn zaber_simulator_realistic_camera_is_recovered() {
     let cfg = with(REALISTIC, &[("turntable.kind", "\"sim-zaber\"")]);
     let (r, _d) = run_cfg(&cfg, None);
     assert_accurate(&r, &cfg, 2e-4, 0.2, "realistic, Zaber simulator");
-}
-
-/// An operator who does what each prompt says, and remembers the prompts.
-#[derive(Debug, Clone, Default)]
-struct Scripted(Arc<Mutex<Vec<String>>>);
-
-impl Operator for Scripted {
-    fn confirm(&mut self, instruction: &str) -> std::io::Result<bool> {
-        self.0.lock().unwrap().push(instruction.to_string());
-        Ok(true)
-    }
 }
 
 #[test]

@@ -6,8 +6,11 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stderr)]
 
+#[path = "support/scripted.rs"]
+mod scripted;
+use scripted::Scripted;
+
 use std::sync::atomic::AtomicBool;
-use std::sync::{Arc, Mutex};
 
 use cubecal::calib::{Correspondence, Fix, Loss, SolveOptions, View};
 use cubecal::camera::{Camera, DistortionModel};
@@ -148,17 +151,6 @@ fn planned_two_axis_run_covers_the_image_and_determines_k3_and_the_principal_poi
         "σ of fx, fy, cx, cy, k1–k3 predicted"
     );
     assert!(r.views.iter().any(|v| v.tilt_deg.is_some_and(|t| t != 0.0)));
-}
-
-/// An operator who reads the pose off each prompt and confirms; remembers the prompts.
-#[derive(Debug, Clone, Default)]
-struct Scripted(Arc<Mutex<Vec<String>>>);
-
-impl Operator for Scripted {
-    fn confirm(&mut self, instruction: &str) -> std::io::Result<bool> {
-        self.0.lock().unwrap().push(instruction.to_string());
-        Ok(true)
-    }
 }
 
 #[test]
