@@ -191,6 +191,7 @@ impl EventSink for JsonLines {
 }
 
 pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
+    let mut laps = station::Laps::start();
     let station::setup::Prepared {
         cfg,
         rig_toml,
@@ -205,6 +206,7 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
     }
     let operator: Option<Box<dyn Operator>> = Some(Box::new(super::operator::TerminalOperator));
     let hw = station::hardware::open(&cfg, &rig, operator)?;
+    laps.lap("prepare and open");
     let spec = RunSpec {
         config: &cfg,
         rig: &rig,
@@ -222,13 +224,16 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
         }
         r?
     };
+    laps.lap("station run");
     let previews = std::mem::take(&mut result.previews);
     super::report::write_for_run(&run_dir, previews, &mut station::event::NullSink);
+    laps.lap("report");
     if out.json {
         print_json(&result)?;
     } else {
         print_human(&result, cfg.output.store.as_deref());
     }
+    laps.lap("print");
     Ok(result.exit_code())
 }
 

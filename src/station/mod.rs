@@ -137,6 +137,28 @@ pub struct RunSpec<'a> {
     pub run_dir: &'a Path,
 }
 
+/// The wall time of each stage of a run, logged at debug level (`RUST_LOG=cubecal::station=debug`)
+/// as it ends: where a run's time goes, without a profiler.
+#[derive(Debug)]
+pub struct Laps(std::time::Instant);
+
+impl Laps {
+    pub fn start() -> Laps {
+        Laps(std::time::Instant::now())
+    }
+
+    /// Log the time since the previous lap (or the start) as `stage`'s.
+    pub fn lap(&mut self, stage: &'static str) {
+        let now = std::time::Instant::now();
+        tracing::debug!(
+            stage,
+            ms = (now - self.0).as_secs_f64() * 1e3,
+            "station stage"
+        );
+        self.0 = now;
+    }
+}
+
 fn write_file(path: &Path, bytes: &[u8]) -> Result<(), StationError> {
     crate::rig::svg::write_atomic(path, bytes).map_err(|source| StationError::Write {
         path: path.to_path_buf(),
@@ -175,6 +197,7 @@ pub fn run(
 ) -> Result<RunResult, StationError> {
     let cfg = spec.config;
     let run_dir = spec.run_dir;
+    let mut laps = Laps::start();
     if run_dir.join(crate::run::RESULT).exists()
         || run_dir
             .join(crate::run::SESSION)
@@ -219,7 +242,9 @@ pub fn run(
         height: info.height,
         turntable: hw.turntable_name.clone(),
     });
+    laps.lap("open the session");
     let mut outcome = capture_poses(spec, &mut hw, &mut session, sink, stop);
+    laps.lap("capture and detect");
     // A signal can also cut a wait short (EINTR on the serial port or the camera): the run was
     // interrupted, whatever the interrupted call reported.
     if stop.load(Ordering::SeqCst)
@@ -247,6 +272,7 @@ pub fn run(
     }
     session.set_outcome(outcome.is_ok(), ended_by);
     let finished = session.finish();
+    laps.lap("close the session");
     let poses = outcome?;
     finished?;
     // Photos of which not one could be used: bad input, as for `cubecal detect`.
@@ -263,7 +289,7 @@ pub fn run(
 
     let mut poses = poses;
     let previews: Vec<_> = poses.iter_mut().filter_map(|p| p.preview.take()).collect();
-    let result = solve_and_judge(spec, &info, poses, sink);
+    let result = solve_and_judge(spec, &info, poses, sink, &mut laps);
     let mut result = result?;
     result.previews = previews;
     // Files: observations and result; a passing run writes its profile.
@@ -271,8 +297,10 @@ pub fn run(
     if let (true, Some(calibration)) = (result.verdict.pass, result.calibration.clone()) {
         let path = write_profile(spec, &hw, &mut result, calibration, sink)?;
         result.profile = Some(path);
+        laps.lap("profile");
     }
     write_json(&run_dir.join(crate::run::RESULT), &result)?;
+    laps.lap("result.json");
     sink.event(&Event::Verdict {
         verdict: result.verdict.clone(),
     });
@@ -818,6 +846,7 @@ fn solve_and_judge(
     info: &SourceInfo,
     poses: Vec<PoseData>,
     sink: &mut dyn EventSink,
+    laps: &mut Laps,
 ) -> Result<RunResult, StationError> {
     let cfg = spec.config;
     let image_size = [info.width, info.height];
@@ -832,6 +861,7 @@ fn solve_and_judge(
     };
     let n_fit = n_views - n_held;
     let settled = settle_candidates(spec, &mut poses, image_size, n_fit, sink);
+    laps.lap("settle candidates");
     let mut accepted: Vec<(View, Vec<String>, Option<String>)> = poses
         .iter()
         .filter_map(|p| {
@@ -870,6 +900,7 @@ fn solve_and_judge(
         write_json(&spec.run_dir.join(crate::run::OBSERVATIONS), &raw)
     };
     write_observations(&accepted)?;
+    laps.lap("observations.json");
     let views: Vec<ViewRecord> = poses.iter().map(|p| p.record.clone()).collect();
     let mut coverage = Coverage::new(info.width, info.height, cfg.qa.coverage_grid);
     for v in &fit {
@@ -911,6 +942,7 @@ fn solve_and_judge(
             return Ok(result);
         }
     };
+    laps.lap("solve");
     if cfg.solve.fix_undetermined_k3
         && let Some(k3) = crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3)
     {
@@ -937,6 +969,7 @@ fn solve_and_judge(
             Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
         }
     }
+    laps.lap("k3 check");
     // The corners fitted again in the undistorted coordinates of the solved lens (unbiased where
     // distortion bends the edges; issue 19), kept when the solve's residuals fall.
     let recorded: Vec<_> = (poses.iter())
@@ -969,6 +1002,7 @@ fn solve_and_judge(
         (accepted.iter_mut().zip(views)).for_each(|(a, v)| a.0 = v);
         write_observations(&accepted)?;
     }
+    laps.lap("lens refit and its solve");
     let mut held_out = Vec::new();
     let mut held_failures = Vec::new();
     for v in &held {
@@ -1011,6 +1045,7 @@ fn solve_and_judge(
     result.calibration = Some(CalibrationReport::from(&cal));
     result.held_out = held_out;
     result.notes = notes;
+    laps.lap("held out and verdict");
     Ok(result)
 }
 
