@@ -287,4 +287,8 @@ impl FrameSource for ImageFiles {
     fn take_source_file(&mut self) -> Option<SourceFile> {
         self.last.take()
     }
+
+    fn recorded(&self) -> bool {
+        true
+    }
 }

@@ -175,6 +175,12 @@ pub trait FrameSource {
     fn take_source_file(&mut self) -> Option<SourceFile> {
         None
     }
+    /// Whether the frames were taken before the run (photos, a recorded session): they are the
+    /// same whenever they are grabbed, so the station may grab a pose before it has detected the
+    /// one before. `false` (the default) for cameras and renderers.
+    fn recorded(&self) -> bool {
+        false
+    }
 }
 
 /// A user's image file as it was read, to be recorded byte for byte (see

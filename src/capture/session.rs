@@ -730,4 +730,8 @@ impl FrameSource for ReplaySource {
     fn take_source_file(&mut self) -> Option<SourceFile> {
         self.last.take()
     }
+
+    fn recorded(&self) -> bool {
+        true
+    }
 }

@@ -9,7 +9,10 @@
 //!    `frames_per_pose` frames, check that consecutive frames agree (motion), detect, check the edges'
 //!    blur, accept the view or reject it with a reason, update the coverage grid. Every frame goes into
 //!    the run's recorded session (`RUN_DIR/session`), whose manifest records the station config and
-//!    rig, so `--replay RUN_DIR/session` re-runs the same data bit for bit.
+//!    rig, so `--replay RUN_DIR/session` re-runs the same data bit for bit. Frames taken before the
+//!    run (photos, a replayed session) are grabbed a few poses at a time and detected at once, one
+//!    pose a core ([`FrameSource::recorded`](crate::capture::FrameSource::recorded)): the same views,
+//!    session and events in the same order as one pose at a time.
 //! 3. Solve (robust loss), with the last `plan.held_out` accepted views kept out; each held-out view's
 //!    pose is then solved with the intrinsics fixed ([`crate::calib::pose`]) and its RMS compared with
 //!    the fit's. k3 is fixed (and the verdict says so) when the data cannot tell it from zero (within 2σ) while one
@@ -44,6 +47,7 @@ pub mod sharpness;
 
 pub use crate::run::{Check, HeldOut, RunResult, Verdict, ViewRecord};
 pub use config::StationConfig;
+use event::Recorder;
 pub use event::{Event, EventSink};
 
 use crate::calib::observations::{RawObservations, RawPoint, RawView};
@@ -307,6 +311,46 @@ pub fn run(
     Ok(result)
 }
 
+/// The most poses whose frames are detected at once (one a core, on a machine with more).
+const MAX_DETECT_AT_ONCE: usize = 4;
+
+/// One pose's frames, grabbed and recorded in the session, before detection.
+struct Acquired {
+    frames: Vec<crate::capture::Frame>,
+    name: String,
+    grabbed: Grabbed,
+    angle: Option<f64>,
+    planned: Option<f64>,
+    tilt: Option<f64>,
+    /// The events of its grab, held back while the poses grabbed with it are detected (none when
+    /// poses are taken one at a time: their events go out as they happen).
+    events: Vec<Event>,
+}
+
+/// Where a pose's events go while it is grabbed: to the run's sink, or held back with the pose.
+enum PoseEvents<'s> {
+    Live(&'s mut dyn EventSink),
+    Held(Recorder),
+}
+
+impl EventSink for PoseEvents<'_> {
+    fn event(&mut self, event: &Event) {
+        match self {
+            PoseEvents::Live(sink) => sink.event(event),
+            PoseEvents::Held(held) => held.event(event),
+        }
+    }
+}
+
+impl PoseEvents<'_> {
+    fn held(self) -> Vec<Event> {
+        match self {
+            PoseEvents::Live(_) => Vec::new(),
+            PoseEvents::Held(held) => held.events,
+        }
+    }
+}
+
 fn capture_poses(
     spec: &RunSpec<'_>,
     hw: &mut Hardware,
@@ -315,11 +359,8 @@ fn capture_poses(
     stop: &AtomicBool,
 ) -> Result<Vec<PoseData>, StationError> {
     let cfg = spec.config;
-    let fpp = cfg.camera.frames_per_pose.max(1) as usize;
-    let timeout = Duration::from_millis(cfg.camera.grab_timeout_ms);
     let info = hw.source.describe();
     let total = hw.poses.len();
-    let mut finder = CornerFinder::new().map_err(|e| StationError::Detect(e.to_string()))?;
     let mut coverage = Coverage::new(info.width, info.height, cfg.qa.coverage_grid);
     let mut out = Vec::with_capacity(total);
     let moving = matches!(hw.poses, Poses::Angles(_) | Poses::Stage { .. });
@@ -327,6 +368,26 @@ fn capture_poses(
         Poses::Stage { sweep: None, .. } => Some(plan::Planning::new(spec, &info, &*hw.turntable)),
         _ => None,
     };
+    // Frames taken before the run (photos, a replayed session) are the same whenever they are
+    // grabbed: a few poses are grabbed and recorded, then detected at once, one a core, and their
+    // events go out in the order of a pose-by-pose run. A moving turntable, the planner and an early
+    // stop decide each pose on the ones before it, and a live camera's frames depend on when they
+    // are grabbed: those runs take one pose at a time.
+    let at_once = if hw.source.recorded()
+        && !moving
+        && planning.is_none()
+        && !cfg.plan.stop_when_sufficient
+    {
+        std::thread::available_parallelism()
+            .map_or(1, std::num::NonZero::get)
+            .clamp(1, MAX_DETECT_AT_ONCE)
+    } else {
+        1
+    };
+    let mut finders = (0..at_once)
+        .map(|_| CornerFinder::new())
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| StationError::Detect(e.to_string()))?;
     // Homing gets twice the move timeout (hardware::open_turntable); past that, let the watchdog see.
     let move_limit =
         Duration::from_secs(cfg.turntable.move_timeout_s) * 2 + Duration::from_secs(10);
@@ -339,175 +400,288 @@ fn capture_poses(
             cell.set(0.0);
         }
     }
-    for index in 0..total {
-        if stop.load(Ordering::SeqCst) {
-            return Err(StationError::Interrupted {
-                pose: index,
-                total,
-                session: spec.run_dir.join(crate::run::SESSION),
-            });
-        }
-        let manual = hw.turntable.is_manual();
-        let has_tilt = matches!(hw.poses, Poses::Stage { .. });
-        let (planned, tilt, target) = match &hw.poses {
-            Poses::Angles(a) => (Some(a[index]), None, None),
-            Poses::Stage { sweep: Some(s), .. } => {
-                (Some(s[index].rotation_deg), Some(s[index].tilt_deg), None)
-            }
-            Poses::Stage { sweep: None, .. } => {
-                let Some(choice) = planning.as_mut().and_then(|p| p.choose()) else {
-                    tracing::info!(
-                        poses = index,
-                        "no candidate pose left that shows the rig; ending the plan"
-                    );
-                    break;
-                };
-                sink.event(&Event::PoseChosen {
-                    index,
-                    rotation_deg: choice.pose.rotation_deg,
-                    tilt_deg: choice.pose.tilt_deg,
-                    corners: choice.corners,
-                    predicted: choice.sigma.clone(),
-                });
-                // Where the predicted corners land: their mean, and the empty cells they fill.
-                let n = choice.points.len().max(1) as f64;
-                let mean = choice.points.iter().sum::<nalgebra::Vector2<f64>>() / n;
-                let target = (
-                    coverage.region_of(&mean),
-                    coverage.newly_covered(&choice.points),
-                );
-                (
-                    Some(choice.pose.rotation_deg),
-                    Some(choice.pose.tilt_deg),
-                    Some(target),
-                )
-            }
-            Poses::Frames { angles } => (angles[index], None, None),
-        };
-        // A person moving the stage gets the whole pose in words (never empty for a manual pose).
-        let instruction = (manual && moving).then(|| {
-            plan::instruction(
-                plan::StagePose {
-                    rotation_deg: planned.unwrap_or(0.0),
-                    tilt_deg: tilt.unwrap_or(0.0),
-                },
-                has_tilt,
-                target,
-            )
-        });
-        sink.event(&Event::PosePlanned {
-            index,
-            total,
-            angle_deg: planned,
-            instruction: instruction.clone(),
-        });
-        let mut angle = planned;
-        if moving && let Some(rotation) = planned {
-            let rotation = Degrees::checked(rotation)?;
-            let tilt_target = tilt.map(Degrees::checked).transpose()?;
-            let settled = match &instruction {
-                Some(text) => notify::alive_during(sink, move_limit, || {
-                    hw.turntable.by_hand(text, rotation, tilt_target)
-                })?,
-                None => {
-                    let settled_tilt = match tilt_target {
-                        Some(t) => {
-                            sink.event(&Event::Tilting {
-                                index,
-                                tilt_deg: t.0,
-                            });
-                            Some(notify::alive_during(sink, move_limit, || {
-                                hw.turntable.tilt_to(t)
-                            })?)
-                        }
-                        None => None,
-                    };
-                    sink.event(&Event::Moving {
-                        index,
-                        angle_deg: rotation.0,
-                    });
-                    let r =
-                        notify::alive_during(sink, move_limit, || hw.turntable.move_to(rotation))?;
-                    (r, settled_tilt)
-                }
+    let mut index = 0;
+    let mut planned_out = false;
+    while index < total && !planned_out {
+        let mut batch = Vec::with_capacity(at_once);
+        // An error that ends the run once the poses grabbed before it are accounted for, with the
+        // events of the grab that failed.
+        let mut ended = None;
+        while batch.len() < at_once && index < total {
+            let mut events = if at_once == 1 {
+                PoseEvents::Live(&mut *sink)
+            } else {
+                PoseEvents::Held(Recorder::default())
             };
-            if let (Some(cell), Some(t)) = (&hw.tilt, settled.1) {
-                cell.set(t.0);
-            }
-            if let Some(cell) = &hw.angle {
-                cell.set(settled.0.0);
-            }
-            angle = Some(settled.0.0);
-            sink.event(&Event::Settled {
+            let acquired = acquire(
+                spec,
+                hw,
+                session,
+                &mut events,
+                stop,
                 index,
-                angle_deg: settled.0.0,
-            });
-            if cfg.turntable.settle_ms > 0 {
-                std::thread::sleep(Duration::from_millis(cfg.turntable.settle_ms));
+                &mut planning,
+                &coverage,
+                move_limit,
+            );
+            let events = events.held();
+            match acquired {
+                Ok(Some(mut a)) => {
+                    a.events = events;
+                    batch.push(a);
+                    index += 1;
+                }
+                Ok(None) => {
+                    planned_out = true;
+                    break;
+                }
+                Err(e) => {
+                    ended = Some((e, events));
+                    break;
+                }
             }
         }
-        sink.event(&Event::Alive);
-        let flushed = if moving { hw.source.flush()? } else { 0 };
-        let mut frames = Vec::with_capacity(fpp);
-        let mut grabbed = Grabbed::default();
-        for _ in 0..fpp {
-            grabbed.grab(hw.source.as_mut(), timeout, angle, session, &mut frames)?;
-            sink.event(&Event::Alive);
-        }
-        let name = (grabbed.source.take()).unwrap_or_else(|| format!("pose{index:02}"));
-        let last = frames.last().map(|f| f.sequence).unwrap_or_default();
-        sink.event(&Event::FrameGrabbed {
-            index,
-            sequence: last,
-            flushed,
-        });
-        let mut pose = examine(spec, &mut finder, &frames, name, grabbed, angle)?;
-        pose.record.tilt_deg = tilt;
-        match &pose.view {
-            Some((view, _)) => {
-                if let (Some(p), Some(r), Some(t)) = (planning.as_mut(), planned, tilt) {
-                    p.accepted(
-                        plan::StagePose {
-                            rotation_deg: r,
-                            tilt_deg: t,
-                        },
-                        view,
-                    );
+        let examined = examine_batch(spec, &mut finders, &mut batch);
+        for (a, pose) in batch.iter_mut().zip(examined) {
+            let index = out.len();
+            for e in a.events.drain(..) {
+                sink.event(&e);
+            }
+            let pose = pose?;
+            match &pose.view {
+                Some((view, _)) => {
+                    if let (Some(p), Some(r), Some(t)) = (planning.as_mut(), a.planned, a.tilt) {
+                        p.accepted(
+                            plan::StagePose {
+                                rotation_deg: r,
+                                tilt_deg: t,
+                            },
+                            view,
+                        );
+                    }
+                    for p in &view.points {
+                        coverage.add(&p.uv);
+                    }
+                    sink.event(&Event::ViewAccepted {
+                        index,
+                        name: pose.record.name.clone(),
+                        faces: pose.record.faces,
+                        corners: pose.record.corners,
+                    });
                 }
-                for p in &view.points {
-                    coverage.add(&p.uv);
-                }
-                sink.event(&Event::ViewAccepted {
+                None => sink.event(&Event::ViewRejected {
                     index,
                     name: pose.record.name.clone(),
-                    faces: pose.record.faces,
-                    corners: pose.record.corners,
-                });
+                    reason: pose.record.reason.clone().unwrap_or_default(),
+                }),
             }
-            None => sink.event(&Event::ViewRejected {
-                index,
-                name: pose.record.name.clone(),
-                reason: pose.record.reason.clone().unwrap_or_default(),
-            }),
+            out.push(pose);
+            sink.event(&Event::Coverage {
+                views: out.iter().filter(|p| p.view.is_some()).count(),
+                fraction: coverage.fraction(),
+                cells_covered: coverage.covered(),
+                cells_total: coverage.total(),
+            });
+            if cfg.plan.stop_when_sufficient
+                && sufficient(spec, &out, &coverage, info.width, info.height)
+            {
+                tracing::info!(
+                    poses = out.len(),
+                    "data sufficient; stopping the plan early"
+                );
+                return Ok(out);
+            }
         }
-        out.push(pose);
-        sink.event(&Event::Coverage {
-            views: out.iter().filter(|p| p.view.is_some()).count(),
-            fraction: coverage.fraction(),
-            cells_covered: coverage.covered(),
-            cells_total: coverage.total(),
-        });
-        if cfg.plan.stop_when_sufficient
-            && sufficient(spec, &out, &coverage, info.width, info.height)
-        {
-            tracing::info!(
-                poses = index + 1,
-                "data sufficient; stopping the plan early"
-            );
-            break;
+        if let Some((e, events)) = ended {
+            for event in &events {
+                sink.event(event);
+            }
+            return Err(e);
         }
     }
     Ok(out)
+}
+
+/// Plan, move to and grab pose `index`, recording its frames in the session; `None` when the planner
+/// has no pose left that shows the rig.
+fn acquire(
+    spec: &RunSpec<'_>,
+    hw: &mut Hardware,
+    session: &mut SessionWriter,
+    sink: &mut dyn EventSink,
+    stop: &AtomicBool,
+    index: usize,
+    planning: &mut Option<plan::Planning>,
+    coverage: &Coverage,
+    move_limit: Duration,
+) -> Result<Option<Acquired>, StationError> {
+    let cfg = spec.config;
+    let fpp = cfg.camera.frames_per_pose.max(1) as usize;
+    let timeout = Duration::from_millis(cfg.camera.grab_timeout_ms);
+    let total = hw.poses.len();
+    let moving = matches!(hw.poses, Poses::Angles(_) | Poses::Stage { .. });
+    if stop.load(Ordering::SeqCst) {
+        return Err(StationError::Interrupted {
+            pose: index,
+            total,
+            session: spec.run_dir.join(crate::run::SESSION),
+        });
+    }
+    let manual = hw.turntable.is_manual();
+    let has_tilt = matches!(hw.poses, Poses::Stage { .. });
+    let (planned, tilt, target) = match &hw.poses {
+        Poses::Angles(a) => (Some(a[index]), None, None),
+        Poses::Stage { sweep: Some(s), .. } => {
+            (Some(s[index].rotation_deg), Some(s[index].tilt_deg), None)
+        }
+        Poses::Stage { sweep: None, .. } => {
+            let Some(choice) = planning.as_mut().and_then(|p| p.choose()) else {
+                tracing::info!(
+                    poses = index,
+                    "no candidate pose left that shows the rig; ending the plan"
+                );
+                return Ok(None);
+            };
+            sink.event(&Event::PoseChosen {
+                index,
+                rotation_deg: choice.pose.rotation_deg,
+                tilt_deg: choice.pose.tilt_deg,
+                corners: choice.corners,
+                predicted: choice.sigma.clone(),
+            });
+            // Where the predicted corners land: their mean, and the empty cells they fill.
+            let n = choice.points.len().max(1) as f64;
+            let mean = choice.points.iter().sum::<nalgebra::Vector2<f64>>() / n;
+            let target = (
+                coverage.region_of(&mean),
+                coverage.newly_covered(&choice.points),
+            );
+            (
+                Some(choice.pose.rotation_deg),
+                Some(choice.pose.tilt_deg),
+                Some(target),
+            )
+        }
+        Poses::Frames { angles } => (angles[index], None, None),
+    };
+    // A person moving the stage gets the whole pose in words (never empty for a manual pose).
+    let instruction = (manual && moving).then(|| {
+        plan::instruction(
+            plan::StagePose {
+                rotation_deg: planned.unwrap_or(0.0),
+                tilt_deg: tilt.unwrap_or(0.0),
+            },
+            has_tilt,
+            target,
+        )
+    });
+    sink.event(&Event::PosePlanned {
+        index,
+        total,
+        angle_deg: planned,
+        instruction: instruction.clone(),
+    });
+    let mut angle = planned;
+    if moving && let Some(rotation) = planned {
+        let rotation = Degrees::checked(rotation)?;
+        let tilt_target = tilt.map(Degrees::checked).transpose()?;
+        let settled = match &instruction {
+            Some(text) => notify::alive_during(sink, move_limit, || {
+                hw.turntable.by_hand(text, rotation, tilt_target)
+            })?,
+            None => {
+                let settled_tilt = match tilt_target {
+                    Some(t) => {
+                        sink.event(&Event::Tilting {
+                            index,
+                            tilt_deg: t.0,
+                        });
+                        Some(notify::alive_during(sink, move_limit, || {
+                            hw.turntable.tilt_to(t)
+                        })?)
+                    }
+                    None => None,
+                };
+                sink.event(&Event::Moving {
+                    index,
+                    angle_deg: rotation.0,
+                });
+                let r = notify::alive_during(sink, move_limit, || hw.turntable.move_to(rotation))?;
+                (r, settled_tilt)
+            }
+        };
+        if let (Some(cell), Some(t)) = (&hw.tilt, settled.1) {
+            cell.set(t.0);
+        }
+        if let Some(cell) = &hw.angle {
+            cell.set(settled.0.0);
+        }
+        angle = Some(settled.0.0);
+        sink.event(&Event::Settled {
+            index,
+            angle_deg: settled.0.0,
+        });
+        if cfg.turntable.settle_ms > 0 {
+            std::thread::sleep(Duration::from_millis(cfg.turntable.settle_ms));
+        }
+    }
+    sink.event(&Event::Alive);
+    let flushed = if moving { hw.source.flush()? } else { 0 };
+    let mut frames = Vec::with_capacity(fpp);
+    let mut grabbed = Grabbed::default();
+    for _ in 0..fpp {
+        grabbed.grab(hw.source.as_mut(), timeout, angle, session, &mut frames)?;
+        sink.event(&Event::Alive);
+    }
+    let name = (grabbed.source.take()).unwrap_or_else(|| format!("pose{index:02}"));
+    let last = frames.last().map(|f| f.sequence).unwrap_or_default();
+    sink.event(&Event::FrameGrabbed {
+        index,
+        sequence: last,
+        flushed,
+    });
+    Ok(Some(Acquired {
+        frames,
+        name,
+        grabbed,
+        angle,
+        planned,
+        tilt,
+        events: Vec::new(),
+    }))
+}
+
+/// Detect and check the frames of `batch` ([`examine`]), each pose with a finder of its own and
+/// all but the first on threads of their own; the results in the order of `batch`.
+fn examine_batch(
+    spec: &RunSpec<'_>,
+    finders: &mut [CornerFinder],
+    batch: &mut [Acquired],
+) -> Vec<Result<PoseData, StationError>> {
+    let one = |finder: &mut CornerFinder, a: &mut Acquired| {
+        let name = std::mem::take(&mut a.name);
+        let grabbed = std::mem::take(&mut a.grabbed);
+        let mut pose = examine(spec, finder, &a.frames, name, grabbed, a.angle)?;
+        pose.record.tilt_deg = a.tilt;
+        Ok(pose)
+    };
+    let one = &one;
+    std::thread::scope(|scope| {
+        let mut jobs = batch.iter_mut().zip(finders.iter_mut());
+        let first = jobs.next();
+        let others: Vec<_> = jobs
+            .map(|(a, finder)| scope.spawn(move || one(finder, a)))
+            .collect();
+        let mut out: Vec<_> = first
+            .map(|(a, finder)| one(finder, a))
+            .into_iter()
+            .collect();
+        out.extend(others.into_iter().map(|h| match h.join() {
+            Ok(r) => r,
+            Err(panic) => std::panic::resume_unwind(panic),
+        }));
+        out
+    })
 }
 
 /// What the grabs of one pose left besides their frames: the session file of the last, the name of
