@@ -891,10 +891,21 @@ fn write_outputs(
         path: png_dir.clone(),
         source,
     })?;
-    for p in plots {
-        write_file(&png_dir.join(format!("{}.png", p.name)), &p.png)?;
-    }
-    write_file(out, html.as_bytes())
+    // Each file is written atomically (temporary file, fsync, rename): all at once, so that their
+    // fsyncs overlap (one after another they were most of a photo run's report on a busy disk).
+    let files: Vec<(PathBuf, &[u8])> = (plots.iter())
+        .map(|p| (png_dir.join(format!("{}.png", p.name)), p.png.as_slice()))
+        .chain([(out.to_path_buf(), html.as_bytes())])
+        .collect();
+    std::thread::scope(|scope| {
+        let writes: Vec<_> = (files.iter())
+            .map(|(path, bytes)| scope.spawn(move || write_file(path, bytes)))
+            .collect();
+        (writes.into_iter()).try_for_each(|w| match w.join() {
+            Ok(r) => r,
+            Err(panic) => std::panic::resume_unwind(panic),
+        })
+    })
 }
 
 /// Write the report of `run_dir` to `out` (HTML) and its plots as PNG into `<out stem>_plots/`

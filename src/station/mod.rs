@@ -171,11 +171,15 @@ fn write_file(path: &Path, bytes: &[u8]) -> Result<(), StationError> {
 }
 
 fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), StationError> {
-    let text = serde_json::to_vec_pretty(value).map_err(|e| StationError::Write {
+    write_file(path, &json_bytes(path, value)?)
+}
+
+/// `value` as the pretty JSON of the file `path`.
+fn json_bytes<T: Serialize>(path: &Path, value: &T) -> Result<Vec<u8>, StationError> {
+    serde_json::to_vec_pretty(value).map_err(|e| StationError::Write {
         path: path.to_path_buf(),
         source: std::io::Error::other(e),
-    })?;
-    write_file(path, &text)
+    })
 }
 
 /// The session frames of one pose, and its view.
@@ -219,7 +223,6 @@ pub fn run(
         path: run_dir.to_path_buf(),
         source,
     })?;
-    write_file(&run_dir.join(crate::run::RIG), spec.rig_toml.as_bytes())?;
     let mut info = hw.source.describe();
     if let Some(id) = &hw.identity {
         info.identity = id.clone();
@@ -247,7 +250,15 @@ pub fn run(
         turntable: hw.turntable_name.clone(),
     });
     laps.lap("open the session");
-    let mut outcome = capture_poses(spec, &mut hw, &mut session, sink, stop);
+    // rig.toml is written (fsync included) beside the capture; a failure ends the run like one of
+    // the capture's.
+    let mut outcome = std::thread::scope(|scope| {
+        let rig =
+            scope.spawn(|| write_file(&run_dir.join(crate::run::RIG), spec.rig_toml.as_bytes()));
+        let poses = capture_poses(spec, &mut hw, &mut session, sink, stop);
+        let written = finish_write(&mut Some(rig));
+        poses.and_then(|poses| written.map(|()| poses))
+    });
     laps.lap("capture and detect");
     // A signal can also cut a wait short (EINTR on the serial port or the camera): the run was
     // interrupted, whatever the interrupted call reported.
@@ -1047,7 +1058,8 @@ fn solve_and_judge(
     let mut fit: Vec<View> = accepted[..n_fit].iter().map(|a| a.0.clone()).collect();
     let mut held: Vec<View> = accepted[n_fit..].iter().map(|a| a.0.clone()).collect();
     // observations.json: the accepted views with faces, frames and held-out marks.
-    let write_observations = |accepted: &[(View, Vec<String>, Option<String>)]| {
+    let observations_path = spec.run_dir.join(crate::run::OBSERVATIONS);
+    let observations_json = |accepted: &[(View, Vec<String>, Option<String>)]| {
         let raw = RawObservations {
             image_size,
             views: accepted
@@ -1071,156 +1083,178 @@ fn solve_and_judge(
                 })
                 .collect(),
         };
-        write_json(&spec.run_dir.join(crate::run::OBSERVATIONS), &raw)
+        json_bytes(&observations_path, &raw)
     };
-    write_observations(&accepted)?;
-    laps.lap("observations.json");
-    let views: Vec<ViewRecord> = poses.iter().map(|p| p.record.clone()).collect();
-    let mut coverage = Coverage::new(info.width, info.height, cfg.qa.coverage_grid);
-    for v in &fit {
-        for p in &v.points {
-            coverage.add(&p.uv);
+    // Written (fsync included) beside the solves, on a thread of its own; joined before the file is
+    // written again and before the run goes on, so that its error still ends the run.
+    let first = observations_json(&accepted)?;
+    std::thread::scope(|scope| {
+        let mut writing = Some(scope.spawn(|| write_file(&observations_path, &first)));
+        laps.lap("observations.json");
+        let views: Vec<ViewRecord> = poses.iter().map(|p| p.record.clone()).collect();
+        let mut coverage = Coverage::new(info.width, info.height, cfg.qa.coverage_grid);
+        for v in &fit {
+            for p in &v.points {
+                coverage.add(&p.uv);
+            }
         }
-    }
-    let mut notes = settled;
-    let mut result = RunResult {
-        verdict: Verdict::default(),
-        calibration: None,
-        held_out: Vec::new(),
-        views,
-        profile: None,
-        profile_waits_for: None,
-        run_dir: spec.run_dir.to_path_buf(),
-        device: info.clone(),
-        notes: Vec::new(),
-        solve_error: None,
-        previews: Vec::new(),
-    };
-    if fit.len() < 2 {
-        result.verdict = judge::too_few_views(fit.len(), cfg, &result.views);
-        return Ok(result);
-    }
-    sink.event(&Event::Solving {
-        views: fit.len(),
-        points: fit.iter().map(|v| v.points.len()).sum(),
-    });
-    let mut opts = cfg.solve_options("station config")?;
-    let mut fixed = configured_fixes(&opts, image_size);
-    let mut cal = match notify::alive_during(sink, SOLVE_LIMIT, || {
-        crate::calib::solve(&fit, image_size, &opts)
-    }) {
-        Ok(c) => c,
-        Err(e) => {
-            result.solve_error = Some(e.to_string());
-            result.verdict = judge::solve_failed(&e, fit.len(), cfg);
+        let mut notes = settled;
+        let mut result = RunResult {
+            verdict: Verdict::default(),
+            calibration: None,
+            held_out: Vec::new(),
+            views,
+            profile: None,
+            profile_waits_for: None,
+            run_dir: spec.run_dir.to_path_buf(),
+            device: info.clone(),
+            notes: Vec::new(),
+            solve_error: None,
+            previews: Vec::new(),
+        };
+        if fit.len() < 2 {
+            result.verdict = judge::too_few_views(fit.len(), cfg, &result.views);
+            finish_write(&mut writing)?;
             return Ok(result);
         }
-    };
-    laps.lap("solve");
-    if cfg.solve.fix_undetermined_k3
-        && let Some(k3) = crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3)
-    {
-        let (k3, k3_sd) = (k3.value, k3.std_dev);
-        opts.fix.k3 = true;
-        match notify::alive_during(sink, SOLVE_LIMIT, || {
+        sink.event(&Event::Solving {
+            views: fit.len(),
+            points: fit.iter().map(|v| v.points.len()).sum(),
+        });
+        let mut opts = cfg.solve_options("station config")?;
+        let mut fixed = configured_fixes(&opts, image_size);
+        let mut cal = match notify::alive_during(sink, SOLVE_LIMIT, || {
             crate::calib::solve(&fit, image_size, &opts)
         }) {
-            Ok(c) => {
-                let why = format!(
-                    "these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}, within {}σ of 0, and 1σ moves the image border by {:.1} px); add poses with the rig near the image corners to estimate it",
-                    crate::calib::SIGNIFICANCE_SIGMAS,
-                    crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3)
-                        .map_or(0.0, |u| u.effect_px)
-                );
-                notes.push(format!("k3 fixed at 0: {why}"));
-                fixed.push(crate::run::FixedParameter {
-                    name: "k3".into(),
-                    value: 0.0,
-                    reason: why,
-                });
-                cal = c;
+            Ok(c) => c,
+            Err(e) => {
+                result.solve_error = Some(e.to_string());
+                result.verdict = judge::solve_failed(&e, fit.len(), cfg);
+                finish_write(&mut writing)?;
+                return Ok(result);
             }
-            Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
-        }
-    }
-    laps.lap("k3 check");
-    // The corners fitted again in the undistorted coordinates of the solved lens (unbiased where
-    // distortion bends the edges; issue 19), kept when the solve's residuals fall.
-    let recorded: Vec<_> = (poses.iter())
-        .filter_map(|p| {
-            Some(crate::detect::undistorted::Recorded {
-                name: &p.view.as_ref()?.0.name,
-                frame: p.image.as_ref()?,
-                detection: p.detection.as_ref()?,
-            })
-        })
-        .collect();
-    let refitted = (recorded.len() == accepted.len())
-        .then(|| {
-            notify::alive_during(sink, SOLVE_LIMIT, || {
-                let views = crate::detect::undistorted::refit_recorded(&recorded, &cal.camera)?;
-                let c = crate::calib::solve(&views[..n_fit], image_size, &opts).ok()?;
-                Some((views, c))
-            })
-        })
-        .flatten();
-    if let Some((views, c)) = refitted
-        && c.rms_px < cal.rms_px
-    {
-        tracing::info!(
-            before = cal.rms_px,
-            after = c.rms_px,
-            "corners refitted with the lens"
-        );
-        (fit, held, cal) = (views[..n_fit].to_vec(), views[n_fit..].to_vec(), c);
-        (accepted.iter_mut().zip(views)).for_each(|(a, v)| a.0 = v);
-        write_observations(&accepted)?;
-    }
-    laps.lap("lens refit and its solve");
-    let mut held_out = Vec::new();
-    let mut held_failures = Vec::new();
-    for v in &held {
-        match crate::calib::pose::solve_pose(&cal.camera, v) {
-            Ok(fit) => {
-                let m = fit.cam_from_rig.rotation.matrix();
-                held_out.push(HeldOut {
-                    name: v.name.clone(),
-                    rms_px: fit.rms_px,
-                    max_px: fit.max_px,
-                    rotation: [
-                        [m[(0, 0)], m[(0, 1)], m[(0, 2)]],
-                        [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
-                        [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
-                    ],
-                    translation: fit.cam_from_rig.translation.into(),
-                });
+        };
+        laps.lap("solve");
+        if cfg.solve.fix_undetermined_k3
+            && let Some(k3) = crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3)
+        {
+            let (k3, k3_sd) = (k3.value, k3.std_dev);
+            opts.fix.k3 = true;
+            match notify::alive_during(sink, SOLVE_LIMIT, || {
+                crate::calib::solve(&fit, image_size, &opts)
+            }) {
+                Ok(c) => {
+                    let why = format!(
+                        "these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}, within {}σ of 0, and 1σ moves the image border by {:.1} px); add poses with the rig near the image corners to estimate it",
+                        crate::calib::SIGNIFICANCE_SIGMAS,
+                        crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3)
+                            .map_or(0.0, |u| u.effect_px)
+                    );
+                    notes.push(format!("k3 fixed at 0: {why}"));
+                    fixed.push(crate::run::FixedParameter {
+                        name: "k3".into(),
+                        value: 0.0,
+                        reason: why,
+                    });
+                    cal = c;
+                }
+                Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
             }
-            Err(e) => held_failures.push((v.name.clone(), e)),
         }
+        laps.lap("k3 check");
+        // The corners fitted again in the undistorted coordinates of the solved lens (unbiased where
+        // distortion bends the edges; issue 19), kept when the solve's residuals fall.
+        let recorded: Vec<_> = (poses.iter())
+            .filter_map(|p| {
+                Some(crate::detect::undistorted::Recorded {
+                    name: &p.view.as_ref()?.0.name,
+                    frame: p.image.as_ref()?,
+                    detection: p.detection.as_ref()?,
+                })
+            })
+            .collect();
+        let refitted = (recorded.len() == accepted.len())
+            .then(|| {
+                notify::alive_during(sink, SOLVE_LIMIT, || {
+                    let views = crate::detect::undistorted::refit_recorded(&recorded, &cal.camera)?;
+                    let c = crate::calib::solve(&views[..n_fit], image_size, &opts).ok()?;
+                    Some((views, c))
+                })
+            })
+            .flatten();
+        if let Some((views, c)) = refitted
+            && c.rms_px < cal.rms_px
+        {
+            tracing::info!(
+                before = cal.rms_px,
+                after = c.rms_px,
+                "corners refitted with the lens"
+            );
+            (fit, held, cal) = (views[..n_fit].to_vec(), views[n_fit..].to_vec(), c);
+            (accepted.iter_mut().zip(views)).for_each(|(a, v)| a.0 = v);
+            let refitted = observations_json(&accepted)?;
+            finish_write(&mut writing)?;
+            let path = &observations_path;
+            writing = Some(scope.spawn(move || write_file(path, &refitted)));
+        }
+        laps.lap("lens refit and its solve");
+        let mut held_out = Vec::new();
+        let mut held_failures = Vec::new();
+        for v in &held {
+            match crate::calib::pose::solve_pose(&cal.camera, v) {
+                Ok(fit) => {
+                    let m = fit.cam_from_rig.rotation.matrix();
+                    held_out.push(HeldOut {
+                        name: v.name.clone(),
+                        rms_px: fit.rms_px,
+                        max_px: fit.max_px,
+                        rotation: [
+                            [m[(0, 0)], m[(0, 1)], m[(0, 2)]],
+                            [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
+                            [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
+                        ],
+                        translation: fit.cam_from_rig.translation.into(),
+                    });
+                }
+                Err(e) => held_failures.push((v.name.clone(), e)),
+            }
+        }
+        let max_residual = judge::max_residual(&cal, &fit);
+        result.verdict = judge::judge(&judge::Inputs {
+            cfg,
+            cal: &cal,
+            fit_views: fit.len(),
+            coverage: &coverage,
+            max_residual_px: max_residual,
+            held_out: &held_out,
+            held_failures: &held_failures,
+            views: &result.views,
+        });
+        result.verdict.fixed = fixed;
+        for u in crate::calib::undetermined_parameters(&cal) {
+            notes.push(format!(
+                "{} is not determined by these views ({:.4} ± {:.4}; 1σ moves the image border by {:.1} px)",
+                u.name, u.value, u.std_dev, u.effect_px
+            ));
+        }
+        result.calibration = Some(CalibrationReport::from(&cal));
+        result.held_out = held_out;
+        result.notes = notes;
+        laps.lap("held out and verdict");
+        finish_write(&mut writing)?;
+        Ok(result)
+    })
+}
+
+/// Wait for a file being written on a thread of its own (if it still is) and return how it went.
+fn finish_write(
+    writing: &mut Option<std::thread::ScopedJoinHandle<'_, Result<(), StationError>>>,
+) -> Result<(), StationError> {
+    match writing.take().map(std::thread::ScopedJoinHandle::join) {
+        None => Ok(()),
+        Some(Ok(r)) => r,
+        Some(Err(panic)) => std::panic::resume_unwind(panic),
     }
-    let max_residual = judge::max_residual(&cal, &fit);
-    result.verdict = judge::judge(&judge::Inputs {
-        cfg,
-        cal: &cal,
-        fit_views: fit.len(),
-        coverage: &coverage,
-        max_residual_px: max_residual,
-        held_out: &held_out,
-        held_failures: &held_failures,
-        views: &result.views,
-    });
-    result.verdict.fixed = fixed;
-    for u in crate::calib::undetermined_parameters(&cal) {
-        notes.push(format!(
-            "{} is not determined by these views ({:.4} ± {:.4}; 1σ moves the image border by {:.1} px)",
-            u.name, u.value, u.std_dev, u.effect_px
-        ));
-    }
-    result.calibration = Some(CalibrationReport::from(&cal));
-    result.held_out = held_out;
-    result.notes = notes;
-    laps.lap("held out and verdict");
-    Ok(result)
 }
 
 /// The parameters the solve options hold fixed, each with its value and the reason (the config).
