@@ -151,12 +151,15 @@ pub struct RunReport {
 }
 
 /// PNG with fast compression: plots and thumbnails are flat colours and a downscaled frame, where
-/// stronger compression costs several times the time for a few per cent of size.
+/// stronger compression costs several times the time for a few per cent of size. Every row is
+/// Paeth-filtered: the adaptive choice among the five filters took twice the time for the same size
+/// (a photo run's 13 thumbnails and 6 plots: 19.0 ms adaptive, 10.2 ms Paeth; thumbnails 1.598 MB
+/// either way, plots 346 kB adaptive, 366 kB Paeth; Sub and Up 9 ms, 17 % and 53 % larger).
 fn encode_png(img: &image::RgbImage, what: &Path) -> Result<Vec<u8>, ReportError> {
     use image::ImageEncoder as _;
     use image::codecs::png::{CompressionType, FilterType, PngEncoder};
     let mut bytes = Vec::new();
-    PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Adaptive)
+    PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Paeth)
         .write_image(
             img.as_raw(),
             img.width(),
