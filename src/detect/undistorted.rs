@@ -147,8 +147,9 @@ struct Local<'m, 'c> {
     to_st: Matrix2<f64>,
     /// The plane position at `p0`; the polynomial gives the offset from it.
     q0: Vector2<f64>,
-    /// `coef[k][(i, j)]`: coefficient of `sⁱ tʲ` in plane coordinate `k`.
-    coef: [SMatrix<f64, LOCAL_NODES, LOCAL_NODES>; 2],
+    /// `coef[i][j][k]`: coefficient of `sⁱ tʲ` in plane coordinate `k` (the two coordinates side
+    /// by side, evaluated together).
+    coef: [[[f64; 2]; LOCAL_NODES]; LOCAL_NODES],
 }
 
 /// The Chebyshev nodes in `[−LOCAL_REACH, LOCAL_REACH]` and the inverse of their Vandermonde matrix
@@ -196,7 +197,8 @@ impl<'m, 'c> Local<'m, 'c> {
                 values[1][(i, j)] = q.y;
             }
         }
-        let coef = values.map(|v| inverse * v * inverse.transpose());
+        let [c0, c1] = values.map(|v| inverse * v * inverse.transpose());
+        let coef = std::array::from_fn(|i| std::array::from_fn(|j| [c0[(i, j)], c1[(i, j)]]));
         let local = Local {
             exact,
             p0,
@@ -223,23 +225,21 @@ impl<'m, 'c> Local<'m, 'c> {
     }
 
     /// Horner's scheme in `t` for each power of `s`, then in `s` (written out: through nalgebra's
-    /// generic products it took twice the instructions).
+    /// generic products it took twice the instructions), both coordinates in step: the same
+    /// operations in the same order for each as one at a time, as pairs the compiler packs into one
+    /// SIMD register (a photo run's refit: 381 M instructions one coordinate at a time, 348 M in step;
+    /// callgrind, `cubecal calibrate --images` on the 13 OpenCV left photos, the same corners).
     fn polynomial(&self, st: Vector2<f64>) -> Vector2<f64> {
         let (s, t) = (st.x, st.y);
-        let mut out = [0.0; 2];
-        for (k, o) in out.iter_mut().enumerate() {
-            let c = &self.coef[k];
-            let mut acc = 0.0;
-            for i in (0..LOCAL_NODES).rev() {
-                let mut row = 0.0;
-                for j in (0..LOCAL_NODES).rev() {
-                    row = row * t + c[(i, j)];
-                }
-                acc = acc * s + row;
+        let mut acc = [0.0; 2];
+        for c in self.coef.iter().rev() {
+            let mut row = [0.0; 2];
+            for cij in c.iter().rev() {
+                row = [row[0] * t + cij[0], row[1] * t + cij[1]];
             }
-            *o = acc;
+            acc = [acc[0] * s + row[0], acc[1] * s + row[1]];
         }
-        self.q0 + Vector2::new(out[0], out[1])
+        self.q0 + Vector2::new(acc[0], acc[1])
     }
 }
 
