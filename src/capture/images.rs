@@ -18,9 +18,9 @@ use super::{CaptureError, Frame, FrameSource, GrayImage, SourceFile, SourceInfo}
 /// File extensions read from a folder (case-insensitive).
 pub const EXTENSIONS: [&str; 5] = ["png", "jpg", "jpeg", "tif", "tiff"];
 
-/// A list of image files played back in order, one frame each, then end of stream. The photo after
-/// the one just grabbed is read and decoded on a thread of its own meanwhile (the station detects
-/// the one it has).
+/// A list of image files played back in order, one frame each, then end of stream. The
+/// [`READ_AHEAD`] photos after the one just grabbed are read and decoded on threads of their own
+/// meanwhile (the station detects the ones it has).
 #[derive(Debug)]
 pub struct ImageFiles {
     files: Vec<PathBuf>,
@@ -30,9 +30,14 @@ pub struct ImageFiles {
     height: u32,
     next: usize,
     last: Option<SourceFile>,
-    /// The photo `next`, being read and decoded.
-    ahead: Option<std::thread::JoinHandle<Loaded>>,
+    /// The photos from `next` on, being read and decoded (at most [`READ_AHEAD`], each with its
+    /// index, in order).
+    ahead: std::collections::VecDeque<(usize, std::thread::JoinHandle<Loaded>)>,
 }
+
+/// How many photos are read and decoded ahead of the station: as many as it grabs before it detects
+/// them (one a core, two here), so that a grab finds its photo decoded.
+pub const READ_AHEAD: usize = 2;
 
 /// A photo's bytes (or why they cannot be read) and its frame (or why it cannot be used).
 type Loaded = (Result<Vec<u8>, String>, Result<GrayImage, String>);
@@ -211,7 +216,7 @@ impl ImageFiles {
             height,
             next: 0,
             last: None,
-            ahead: None,
+            ahead: std::collections::VecDeque::new(),
         })
     }
 
@@ -249,20 +254,35 @@ impl FrameSource for ImageFiles {
                 source_name: "image files".into(),
             });
         };
-        let seq = self.next as u64;
+        let index = self.next;
+        let seq = index as u64;
         self.next += 1;
         let size = (self.width, self.height);
-        let (bytes, decoded) = match self.ahead.take().map(std::thread::JoinHandle::join) {
+        let ahead = match self.ahead.front() {
+            Some((i, _)) if *i == index => self.ahead.pop_front(),
+            _ => None,
+        };
+        let (bytes, decoded) = match ahead.map(|(_, reading)| reading.join()) {
             Some(Ok(loaded)) => loaded,
             Some(Err(panic)) => std::panic::resume_unwind(panic),
             None => load(path, size),
         };
-        if let Some(after) = self.files.get(self.next).cloned() {
-            // No thread (resources exhausted): the next grab reads it itself.
-            self.ahead = std::thread::Builder::new()
+        let mut after = self.ahead.back().map_or(self.next, |(i, _)| i + 1);
+        while let Some(file) = self
+            .files
+            .get(after)
+            .filter(|_| after < self.next + READ_AHEAD)
+        {
+            let file = file.clone();
+            match std::thread::Builder::new()
                 .name("photo-reader".into())
-                .spawn(move || load(&after, size))
-                .ok();
+                .spawn(move || load(&file, size))
+            {
+                Ok(reading) => self.ahead.push_back((after, reading)),
+                // No thread (resources exhausted): its grab reads it itself.
+                Err(_) => break,
+            }
+            after += 1;
         }
         self.last = Some(SourceFile {
             name: label.clone(),
