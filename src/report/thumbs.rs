@@ -134,10 +134,10 @@ pub fn thumbnail_of_preview(
     let (tw, th) = small.dimensions();
     let s = 1.0 / f64::from(k);
     let drawn = overlay::draw(small, &scaled(det, s, tw, th), rig);
-    let mut out = RgbImage::from_pixel(tw, th + LEGEND_HEIGHT, image::Rgb([255, 255, 255]));
-    image::imageops::replace(&mut out, &drawn, 0, 0);
-    let (ow, oh) = out.dimensions();
-    let mut buf = out.into_raw();
+    // The drawn frame with a white strip under it (rows of the same width: its bytes, then white).
+    let (ow, oh) = (tw, th + LEGEND_HEIGHT);
+    let mut buf = drawn.into_raw();
+    buf.resize(ow as usize * oh as usize * 3, 255);
     {
         let root = BitMapBackend::with_buffer(&mut buf, (ow, oh)).into_drawing_area();
         let (_, strip) = root.split_vertically(th);
