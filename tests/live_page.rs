@@ -128,12 +128,16 @@ fn writes_need_the_operator_token_and_the_page_binds_to_loopback() {
         "stop with no run"
     );
     assert_eq!(
-        rw.wait(Some(Duration::ZERO), &AtomicBool::new(false)),
+        rw.wait(Some(Duration::ZERO), &AtomicBool::new(false), &mut || {}),
         Waited::Exit
     );
     assert_eq!(http(a, "POST", "/api/start", &auth).0, 202);
     assert_eq!(
-        rw.wait(Some(Duration::from_secs(5)), &AtomicBool::new(false)),
+        rw.wait(
+            Some(Duration::from_secs(5)),
+            &AtomicBool::new(false),
+            &mut || {}
+        ),
         Waited::Start
     );
     let (_, state) = http(a, "GET", "/api/state", &[]);

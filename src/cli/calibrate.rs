@@ -222,7 +222,7 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
         page.live.run_started(&run_dir);
         let outcome = run_once(prepared, out, &stop, Some(&page.live));
         page.finished(&run_dir, &outcome);
-        if page.wait(&quit) == cubecal::live::Waited::Exit {
+        if page.wait(&quit, &mut || {}) == cubecal::live::Waited::Exit {
             return outcome;
         }
         if let Err(e) = &outcome {

@@ -80,8 +80,9 @@ impl Page {
             .run_finished(Some(run_dir.join("report.html")), code, error);
     }
 
-    /// After a run: wait for the operator's Start, the linger time or `quit` (a signal).
-    pub fn wait(&self, quit: &AtomicBool) -> Waited {
+    /// After a run: wait for the operator's Start, the linger time or `quit` (a signal); `tick` is
+    /// called every 100 ms meanwhile.
+    pub fn wait(&self, quit: &AtomicBool, tick: &mut dyn FnMut()) -> Waited {
         match self.linger {
             Some(s) if s.is_zero() => {}
             Some(s) => say(&format!(
@@ -104,7 +105,7 @@ impl Page {
                 }
             )),
         }
-        self.live.wait(self.linger, quit)
+        self.live.wait(self.linger, quit, tick)
     }
 }
 

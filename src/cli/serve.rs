@@ -120,7 +120,11 @@ fn serve(
         page.live.run_started(&run_dir);
         let outcome = serve_once(prepared, sink, stop, Some(&page.live));
         page.finished(&run_dir, &outcome);
-        if page.wait(quit) == cubecal::live::Waited::Exit {
+        // The run's loop no longer pings the watchdog: the wait does (paced by the notifier).
+        let mut alive = || {
+            sink.notifier.notify_event(&Event::Alive);
+        };
+        if page.wait(quit, &mut alive) == cubecal::live::Waited::Exit {
             return outcome;
         }
         if let Err(e) = &outcome {

@@ -390,10 +390,17 @@ impl Live {
     }
 
     /// After a run: wait for the operator's `start` (`POST /api/start`) for at most `linger`
-    /// (`None`: until `quit` is set, checked every 100 ms).
-    pub fn wait(&self, linger: Option<Duration>, quit: &AtomicBool) -> Waited {
+    /// (`None`: until `quit` is set, checked every 100 ms). `tick` is called at each check (the
+    /// service pings its watchdog there).
+    pub fn wait(
+        &self,
+        linger: Option<Duration>,
+        quit: &AtomicBool,
+        tick: &mut dyn FnMut(),
+    ) -> Waited {
         let start = std::time::Instant::now();
         loop {
+            tick();
             if quit.load(Ordering::SeqCst) {
                 return Waited::Exit;
             }
