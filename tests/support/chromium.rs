@@ -62,7 +62,7 @@ impl Browser {
         }
         let child = Command::new("sh")
             .arg("-c")
-            .arg(r#"exec "$0" --headless --no-sandbox --disable-gpu --disable-dev-shm-usage --no-first-run --no-default-browser-check --disable-extensions --user-data-dir="$3" --remote-debugging-pipe about:blank 3<"$1" 4>"$2""#)
+            .arg(r#"exec "$0" --headless --no-sandbox --disable-gpu --disable-dev-shm-usage --no-first-run --no-default-browser-check --disable-extensions --disable-renderer-backgrounding --disable-background-timer-throttling --disable-backgrounding-occluded-windows --user-data-dir="$3" --remote-debugging-pipe about:blank 3<"$1" 4>"$2""#)
             .arg(chromium)
             .arg(&fin)
             .arg(&fout)
