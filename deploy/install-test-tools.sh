@@ -6,17 +6,21 @@
 #   postgresql                           initdb + pg_ctl for the throw-away cluster of the PostgreSQL
 #                                        profile store's tests (tests/profile_postgres.rs,
 #                                        tests/support/pg.rs; found under /usr/lib/postgresql/N/bin)
+#   chromium                             headless browser for the live page's test (tests/live_page.rs,
+#                                        driven over the DevTools protocol) and the report's
+#                                        (tests/report_chromium.sh)
 # All three are Debian packages (bookworm: OpenCV 4.6, ROS parsers 1.12, mrcal 2.2) for the system
 # python, /usr/bin/python3, which the tests use first (CUBECAL_PYTHON overrides). Idempotent, quiet when
 # everything is present; exits non-zero if a tool still cannot be imported afterwards.
 set -euo pipefail
 
-packages=(python3-opencv python3-camera-calibration-parsers python3-mrcal postgresql)
+packages=(python3-opencv python3-camera-calibration-parsers python3-mrcal postgresql chromium)
 check='import cv2, mrcal, camera_calibration_parsers'
 python="${CUBECAL_PYTHON:-/usr/bin/python3}"
 
 have_initdb() { compgen -G '/usr/lib/postgresql/*/bin/initdb' >/dev/null; }
-if "$python" -c "$check" >/dev/null 2>&1 && have_initdb; then exit 0; fi
+have_chromium() { [ -x /usr/bin/chromium ]; }
+if "$python" -c "$check" >/dev/null 2>&1 && have_initdb && have_chromium; then exit 0; fi
 
 missing=()
 for p in "${packages[@]}"; do
@@ -34,6 +38,10 @@ fi
 
 if ! have_initdb; then
   echo "install-test-tools: no initdb under /usr/lib/postgresql/*/bin after installing postgresql" >&2
+  exit 1
+fi
+if ! have_chromium; then
+  echo "install-test-tools: no /usr/bin/chromium after installing chromium" >&2
   exit 1
 fi
 if ! "$python" -c "$check"; then

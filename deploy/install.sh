@@ -36,6 +36,8 @@ install -D -m 0644 deploy/systemd/cubecal@.service "$dest/etc/systemd/system/cub
 install -D -m 0644 udev/99-cubecal.rules "$dest/etc/udev/rules.d/99-cubecal.rules"
 install -D -m 0644 udev/99-cubecal-station.rules "$dest/etc/udev/rules.d/99-cubecal-station.rules"
 install -D -m 0644 README.md "$dest/usr/local/share/doc/cubecal/README.md"
+# The live page is off by default; its drop-in waits here (README "The live page").
+install -D -m 0644 deploy/systemd/live-page.conf "$dest/usr/local/share/doc/cubecal/live-page.conf"
 if [ -e "$dest/etc/cubecal/station.toml" ]; then
   echo "install.sh: keeping the existing /etc/cubecal/station.toml (example: $config_src)"
 else

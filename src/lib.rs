@@ -38,6 +38,9 @@
 //!   and results and calls none of their renderers.
 //! - [`report`]: self-contained HTML reports with plots (and the same plots as PNG) of station runs
 //!   and of stored profiles with their history: a renderer of run data, like the CLI and the service.
+//! - [`live`]: the operator's screen — a web page served by the station's process that renders the
+//!   station's events live (frame with detections, coverage, σ, prompts, verdict, report): a renderer
+//!   of the event stream, like the CLI and the service, which the station never calls.
 //! - [`exit`]: the process exit codes (an API).
 
 pub mod calib;
@@ -45,6 +48,7 @@ pub mod camera;
 pub mod capture;
 pub mod detect;
 pub mod exit;
+pub mod live;
 pub mod profile;
 pub mod render;
 pub mod report;

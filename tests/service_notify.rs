@@ -168,6 +168,8 @@ fn scripted_run() -> Vec<Event> {
             fraction: 0.25,
             cells_covered: 12,
             cells_total: 48,
+            grid: [8, 6],
+            counts: vec![1; 48],
         },
         Event::PosePlanned {
             index: 1,

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Static checks of the station service's systemd unit and udev rules (called from .ci/run):
 #   1. `systemd-analyze verify` of deploy/systemd/cubecal@.service is clean;
-#   2. `systemd-analyze security --offline=true` prints the unit's exposure, which must be <= 2.0;
+#   2. `systemd-analyze security --offline=true` prints the unit's exposure, which must be <= 2.0, with
+#      and without the live page's drop-in (deploy/systemd/live-page.conf);
 #   3. `udevadm test` runs the rules against fake sysfs devices (a USB V4L2 capture node, a USB V4L2
 #      output-only node, a UVC metadata node, an FTDI USB-serial adapter) and the resulting properties
 #      must be: capture node -> TAG systemd + SYSTEMD_WANTS=cubecal@video0.service, the others not;
@@ -60,6 +61,32 @@ elif awk -v e="$exposure" -v m="$max_exposure" 'BEGIN { exit !(e <= m) }'; then
   echo "RESULT: unit_security PASS exposure $exposure (limit $max_exposure)"
 else
   echo "RESULT: unit_security FAIL exposure $exposure above $max_exposure"; fail=1
+fi
+
+# --- 2b. the same with the live page's drop-in (deploy/systemd/live-page.conf) -------------------
+# A drop-in's settings as if appended to the unit: the same file with the drop-in at its end.
+echo "== with the live page: deploy/systemd/live-page.conf"
+mkdir -p "$work/unit-live"
+{ cat "$work/unit/cubecal@.service"; sed "s|/usr/local/bin/cubecal |$bin |" deploy/systemd/live-page.conf; } \
+  > "$work/unit-live/cubecal@.service"
+if (cd "$work/unit-live" && systemd-analyze verify --man=no "cubecal@video0.service") > "$work/verify-live.log" 2>&1 \
+   && ! grep -q . "$work/verify-live.log"; then
+  echo "RESULT: unit_live_verify PASS (no warnings)"
+else
+  cat "$work/verify-live.log"; echo "RESULT: unit_live_verify FAIL"; fail=1
+fi
+(cd "$work/unit-live" && systemd-analyze security --offline=true --no-pager "cubecal@video0.service") \
+  > "$work/security-live.log" 2>&1 || true
+grep -v '✓' "$work/security-live.log" || true
+exposure=$(sed -n 's/.*Overall exposure level for cubecal@video0.service: \([0-9.]*\).*/\1/p' "$work/security-live.log")
+grep -q -- '--http 127.0.0.1:' "$work/unit-live/cubecal@.service" \
+  || { echo "RESULT: unit_live_security FAIL the drop-in does not bind the page to 127.0.0.1"; fail=1; }
+if [ -z "$exposure" ]; then
+  cat "$work/security-live.log"; echo "RESULT: unit_live_security FAIL no exposure figure"; fail=1
+elif awk -v e="$exposure" -v m="$max_exposure" 'BEGIN { exit !(e <= m) }'; then
+  echo "RESULT: unit_live_security PASS exposure $exposure (limit $max_exposure)"
+else
+  echo "RESULT: unit_live_security FAIL exposure $exposure above $max_exposure"; fail=1
 fi
 
 # --- 3. udev rules under udevadm test ------------------------------------------------------------

@@ -59,6 +59,8 @@ pub struct CalibrateArgs {
     /// Identity to store the profile under for synthetic and image runs (camera.device_id).
     #[arg(long)]
     pub device_id: Option<String>,
+    #[command(flatten)]
+    pub http: super::live::HttpArgs,
     /// Set any config key: --set qa.max_rms_px=0.2 (repeatable).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
@@ -80,6 +82,8 @@ impl From<&CalibrateArgs> for RunRequest {
             poses: a.poses,
             sweep_deg: a.sweep_deg,
             device_id: a.device_id.clone(),
+            http: a.http.http.clone(),
+            http_token_file: a.http.http_token_file.clone(),
             set: a.set.clone(),
         }
     }
@@ -191,6 +195,52 @@ impl EventSink for JsonLines {
 }
 
 pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
+    let mut request = RunRequest::from(&args);
+    let prepared = station::setup::prepare(&request)?;
+    // `stop` is the station's stop flag (signals and the page's Stop set it); `quit` only signals.
+    let stop = Arc::new(AtomicBool::new(false));
+    let quit = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        for flag in [&stop, &quit] {
+            signal_hook::flag::register(sig, Arc::clone(flag))
+                .context("installing the signal handler")?;
+        }
+    }
+    let Some(page) = super::live::open(&prepared.cfg, Arc::clone(&stop))? else {
+        return run_once(prepared, out, &stop, None);
+    };
+    // With the page: run, show the outcome, and run again when the operator asks (a new run
+    // directory each time) until the linger time passes or a signal comes.
+    let first = prepared.run_dir.clone();
+    let mut next = Some(prepared);
+    for n in 2.. {
+        let prepared = match next.take() {
+            Some(p) => p,
+            None => station::setup::prepare(&request)?,
+        };
+        let run_dir = prepared.run_dir.clone();
+        page.live.run_started(&run_dir);
+        let outcome = run_once(prepared, out, &stop, Some(&page.live));
+        page.finished(&run_dir, &outcome);
+        if page.wait(&quit, &mut || {}) == cubecal::live::Waited::Exit {
+            return outcome;
+        }
+        if let Err(e) = &outcome {
+            tracing::warn!(error = %e, "run ended with an error; starting the next as asked");
+        }
+        stop.store(false, std::sync::atomic::Ordering::SeqCst);
+        request.out = Some(super::live::numbered(&first, n));
+    }
+    Ok(cubecal::exit::INTERNAL)
+}
+
+/// One station run with its events rendered on the terminal (and on the live page, when open).
+fn run_once(
+    prepared: station::setup::Prepared,
+    out: Output,
+    stop: &AtomicBool,
+    live: Option<&cubecal::live::Live>,
+) -> anyhow::Result<u8> {
     let mut laps = station::Laps::start();
     let station::setup::Prepared {
         cfg,
@@ -198,15 +248,10 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
         rig_path,
         rig,
         run_dir,
-    } = station::setup::prepare(&RunRequest::from(&args))?;
-    let stop = Arc::new(AtomicBool::new(false));
-    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(sig, Arc::clone(&stop))
-            .context("installing the signal handler")?;
-    }
+    } = prepared;
     let operator: Option<Box<dyn Operator>> = Some(Box::new(super::operator::TerminalOperator));
     let hw = station::hardware::open(&cfg, &rig, operator)?;
-    laps.lap("prepare and open");
+    laps.lap("open");
     let spec = RunSpec {
         config: &cfg,
         rig: &rig,
@@ -214,11 +259,22 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
         rig_path,
         run_dir: &run_dir,
     };
+    let run = |sink: &mut dyn EventSink| match live {
+        Some(live) => {
+            let mut page = live.sink();
+            let mut both = cubecal::live::Tee {
+                first: sink,
+                second: &mut page,
+            };
+            station::run(&spec, hw, &mut both, stop)
+        }
+        None => station::run(&spec, hw, sink, stop),
+    };
     let mut result = if out.json {
-        station::run(&spec, hw, &mut JsonLines, &stop)?
+        run(&mut JsonLines)?
     } else {
         let mut human = Human { bar: None };
-        let r = station::run(&spec, hw, &mut human, &stop);
+        let r = run(&mut human);
         if let Some(b) = human.bar.take() {
             b.finish_and_clear();
         }

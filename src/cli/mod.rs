@@ -23,6 +23,7 @@ macro_rules! outln {
 mod calibrate;
 mod capture;
 mod detect;
+mod live;
 mod operator;
 mod profile;
 mod render;
@@ -266,7 +267,7 @@ fn output_write_failure(cause: &(dyn std::error::Error + 'static)) -> bool {
 }
 
 /// Map an error to its exit code: the first library error found in the chain decides.
-fn exit_code_for(err: &anyhow::Error) -> u8 {
+pub(crate) fn exit_code_for(err: &anyhow::Error) -> u8 {
     for cause in err.chain() {
         if cause.downcast_ref::<UsageError>().is_some() {
             return exit::USAGE;
@@ -323,6 +324,9 @@ fn exit_code_for(err: &anyhow::Error) -> u8 {
             return e.exit_code();
         }
         if let Some(e) = cause.downcast_ref::<cubecal::profile::export::ExportError>() {
+            return e.exit_code();
+        }
+        if let Some(e) = cause.downcast_ref::<cubecal::live::LiveError>() {
             return e.exit_code();
         }
         if cause.downcast_ref::<profile::UsageError>().is_some() {

@@ -33,6 +33,8 @@ pub struct ServeArgs {
     /// Station config (TOML; see fixtures/station.toml).
     #[arg(long, default_value = "/etc/cubecal/station.toml")]
     pub config: PathBuf,
+    #[command(flatten)]
+    pub http: super::live::HttpArgs,
     /// Set any config key: --set qa.max_rms_px=0.2 (repeatable; applied after the config and --device).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
@@ -63,14 +65,16 @@ impl EventSink for ServiceSink {
 
 pub fn run(args: ServeArgs, out: Output) -> anyhow::Result<u8> {
     let stop = Arc::new(AtomicBool::new(false));
-    watch_signals(Arc::clone(&stop)).context("installing the SIGTERM/SIGINT handler")?;
+    let quit = Arc::new(AtomicBool::new(false));
+    watch_signals(Arc::clone(&stop), Arc::clone(&quit))
+        .context("installing the SIGTERM/SIGINT handler")?;
     let mut sink = ServiceSink {
         notifier: SystemdNotifier::from_env(),
         json: out.json,
     };
     sink.notifier
         .status(&format!("opening {}", args.device.display()));
-    let result = serve(&args, &mut sink, &stop);
+    let result = serve(&args, &mut sink, &stop, &quit);
     match &result {
         Ok(code) => tracing::info!(code, "station run finished"),
         Err(e) => {
@@ -86,19 +90,66 @@ pub fn run(args: ServeArgs, out: Output) -> anyhow::Result<u8> {
     result
 }
 
-fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow::Result<u8> {
-    let request = RunRequest::from_config(
+fn serve(
+    args: &ServeArgs,
+    sink: &mut ServiceSink,
+    stop: &Arc<AtomicBool>,
+    quit: &AtomicBool,
+) -> anyhow::Result<u8> {
+    let mut request = RunRequest::from_config(
         args.config.clone(),
         Some(args.device.clone()),
         args.set.clone(),
     );
+    request.http = args.http.http.clone();
+    request.http_token_file = args.http.http_token_file.clone();
+    let prepared = setup::prepare(&request)?;
+    let Some(page) = super::live::open(&prepared.cfg, Arc::clone(stop))? else {
+        return serve_once(prepared, sink, stop, None);
+    };
+    // With the page: as `calibrate --http`, the page stays up after the run (until SIGTERM, or
+    // http.linger_s) and its Start runs the station again in a new run directory.
+    let first = prepared.run_dir.clone();
+    let mut next = Some(prepared);
+    for n in 2.. {
+        let prepared = match next.take() {
+            Some(p) => p,
+            None => setup::prepare(&request)?,
+        };
+        let run_dir = prepared.run_dir.clone();
+        page.live.run_started(&run_dir);
+        let outcome = serve_once(prepared, sink, stop, Some(&page.live));
+        page.finished(&run_dir, &outcome);
+        // The run's loop no longer pings the watchdog: the wait does (paced by the notifier).
+        let mut alive = || {
+            sink.notifier.notify_event(&Event::Alive);
+        };
+        if page.wait(quit, &mut alive) == cubecal::live::Waited::Exit {
+            return outcome;
+        }
+        if let Err(e) = &outcome {
+            tracing::warn!(error = %e, "run ended with an error; starting the next as asked");
+        }
+        stop.store(false, Ordering::SeqCst);
+        request.out = Some(super::live::numbered(&first, n));
+    }
+    Ok(cubecal::exit::INTERNAL)
+}
+
+/// One station run for the service (and the live page, when open).
+fn serve_once(
+    prepared: setup::Prepared,
+    sink: &mut ServiceSink,
+    stop: &AtomicBool,
+    live: Option<&cubecal::live::Live>,
+) -> anyhow::Result<u8> {
     let setup::Prepared {
         cfg,
         rig_toml,
         rig_path,
         rig,
         run_dir,
-    } = setup::prepare(&request)?;
+    } = prepared;
     if let Some(line) = spool_line(&cfg, sink, "before the run") {
         sink.notifier.status(&line);
     }
@@ -114,7 +165,17 @@ fn serve(args: &ServeArgs, sink: &mut ServiceSink, stop: &AtomicBool) -> anyhow:
         rig_path,
         run_dir: &run_dir,
     };
-    let mut result = station::run(&spec, hw, sink, stop)?;
+    let mut result = match live {
+        Some(live) => {
+            let mut page = live.sink();
+            let mut both = cubecal::live::Tee {
+                first: &mut *sink,
+                second: &mut page,
+            };
+            station::run(&spec, hw, &mut both, stop)?
+        }
+        None => station::run(&spec, hw, sink, stop)?,
+    };
     // The last status an operator sees in `systemctl status` starts with the verdict; the spool's
     // depth follows it.
     let verdict = cubecal::station::notify::verdict_line(&result.verdict);
@@ -170,8 +231,9 @@ fn spool_line(cfg: &station::StationConfig, sink: &ServiceSink, when: &str) -> O
     Some(line)
 }
 
-/// On the first SIGTERM or SIGINT: tell systemd we are stopping, and set the station's stop flag.
-fn watch_signals(stop: Arc<AtomicBool>) -> std::io::Result<()> {
+/// On the first SIGTERM or SIGINT: tell systemd we are stopping, and set the station's stop flag
+/// and `quit` (which ends the live page's wait after a run).
+fn watch_signals(stop: Arc<AtomicBool>, quit: Arc<AtomicBool>) -> std::io::Result<()> {
     let mut signals = signal_hook::iterator::Signals::new([SIGTERM, SIGINT])?;
     std::thread::Builder::new()
         .name("signals".into())
@@ -179,6 +241,7 @@ fn watch_signals(stop: Arc<AtomicBool>) -> std::io::Result<()> {
             if let Some(sig) = signals.forever().next() {
                 let name = if sig == SIGTERM { "SIGTERM" } else { "SIGINT" };
                 stop.store(true, Ordering::SeqCst);
+                quit.store(true, Ordering::SeqCst);
                 notify_stopping(&format!(
                     "{name}: stopping the turntable and closing the session"
                 ));

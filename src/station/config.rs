@@ -393,6 +393,22 @@ impl OutputSection {
     }
 }
 
+/// `[http]`: the live page ([`crate::live`]). Never recorded in a run's session (a replay must not
+/// open a server), so the field is skipped when the config is written.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct HttpSection {
+    /// Where to serve the page: `PORT`, `HOST:PORT` or `IP:PORT` (a bare port binds 127.0.0.1).
+    /// Off when not set.
+    pub listen: Option<String>,
+    /// File whose first line is the operator token that enables the page's Start/Stop buttons
+    /// (without it the page is read-only).
+    pub token_file: Option<PathBuf>,
+    /// Seconds the page stays up after a run (waiting for Start); not set: until the process is
+    /// stopped (SIGINT/SIGTERM).
+    pub linger_s: Option<u64>,
+}
+
 /// `[rig]`.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -412,6 +428,8 @@ pub struct StationConfig {
     pub solve: SolveSection,
     pub qa: QaSection,
     pub output: OutputSection,
+    #[serde(skip_serializing)]
+    pub http: HttpSection,
 }
 
 /// Set `key` (dotted path, e.g. `qa.max_rms_px`) in a TOML table to `value`, parsed as a TOML value

@@ -1,6 +1,12 @@
 //! Typed events the station emits while it runs. The library never prints: the CLI renders these as a
 //! progress bar and per-pose lines (or one JSON object per line with `--json`), the service as
-//! systemd `STATUS=` lines and watchdog pings.
+//! systemd `STATUS=` lines and watchdog pings, the live page ([`crate::live`]) as a web page.
+//!
+//! Two events carry pixels and are made only for sinks that ask for them
+//! ([`EventSink::wants_frames`], false by default): [`Event::Frame`], each frame as it is grabbed, and
+//! [`Event::Detected`], where the detector found the labelled corners. Without such a sink the
+//! station neither copies a frame nor builds them, so a run without the live page does no extra work;
+//! the CLI's and the service's renderers ignore both.
 
 use serde::Serialize;
 
@@ -17,6 +23,8 @@ pub enum Event {
         height: u32,
         turntable: String,
     },
+    /// The stage is homing before the first pose; `instruction` is what a manual operator is asked.
+    Homing { instruction: Option<String> },
     /// Pose `index` (0-based) of `total` planned; `instruction` is what a manual operator is asked.
     PosePlanned {
         index: usize,
@@ -39,6 +47,26 @@ pub enum Event {
     Moving { index: usize, angle_deg: f64 },
     /// The turntable reports it has settled.
     Settled { index: usize, angle_deg: f64 },
+    /// A frame just grabbed for pose `index` (made only for sinks that [want
+    /// frames](EventSink::wants_frames)). `grabbed_unix_ms` is the wall-clock time at which the grab
+    /// returned, for the page's grab-to-screen latency. The pixels are not serialised.
+    Frame {
+        index: usize,
+        sequence: u64,
+        grabbed_unix_ms: f64,
+        #[serde(skip)]
+        image: FrameImage,
+    },
+    /// Where the detector found labelled corners in pose `index`'s last frame (frame `sequence`),
+    /// per face, in full-frame pixels (made only for sinks that want frames): the view's corners when
+    /// it was accepted, the detection's when it was rejected after detection.
+    Detected {
+        index: usize,
+        sequence: u64,
+        width: u32,
+        height: u32,
+        faces: Vec<DetectedFace>,
+    },
     /// A frame was grabbed for pose `index` after dropping `flushed` stale frames.
     FrameGrabbed {
         index: usize,
@@ -59,11 +87,14 @@ pub enum Event {
         reason: String,
     },
     /// Coverage after the latest view: fraction of the image grid cells holding corners.
+    /// `grid` is `[cols, rows]` and `counts` the corners per cell, row-major (the map a page draws).
     Coverage {
         views: usize,
         fraction: f64,
         cells_covered: usize,
         cells_total: usize,
+        grid: [usize; 2],
+        counts: Vec<usize>,
     },
     /// The final solve started.
     Solving { views: usize, points: usize },
@@ -91,9 +122,34 @@ pub enum Event {
     Alive,
 }
 
+/// A grabbed frame shared with the sinks that want it (its `Debug` prints the size, not the pixels).
+#[derive(Clone, PartialEq)]
+pub struct FrameImage(pub std::sync::Arc<image::GrayImage>);
+
+impl std::fmt::Debug for FrameImage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "FrameImage({}×{})", self.0.width(), self.0.height())
+    }
+}
+
+/// One face's labelled corners in a frame ([`Event::Detected`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DetectedFace {
+    /// The rig face's name.
+    pub face: String,
+    /// Corner positions `[u, v]` in full-frame pixels (pixel-centre convention).
+    pub corners: Vec<[f32; 2]>,
+}
+
 /// Where events go.
 pub trait EventSink {
     fn event(&mut self, event: &Event);
+
+    /// Whether this sink wants [`Event::Frame`] and [`Event::Detected`] (the live page does); the
+    /// station makes them only then.
+    fn wants_frames(&self) -> bool {
+        false
+    }
 }
 
 /// A sink that drops everything.

@@ -341,14 +341,22 @@ struct Acquired {
 /// Where a pose's events go while it is grabbed: to the run's sink, or held back with the pose.
 enum PoseEvents<'s> {
     Live(&'s mut dyn EventSink),
-    Held(Recorder),
+    /// Held, and whether the sink they are for wants frames.
+    Held(Recorder, bool),
 }
 
 impl EventSink for PoseEvents<'_> {
     fn event(&mut self, event: &Event) {
         match self {
             PoseEvents::Live(sink) => sink.event(event),
-            PoseEvents::Held(held) => held.event(event),
+            PoseEvents::Held(held, _) => held.event(event),
+        }
+    }
+
+    fn wants_frames(&self) -> bool {
+        match self {
+            PoseEvents::Live(sink) => sink.wants_frames(),
+            PoseEvents::Held(_, frames) => *frames,
         }
     }
 }
@@ -357,7 +365,7 @@ impl PoseEvents<'_> {
     fn held(self) -> Vec<Event> {
         match self {
             PoseEvents::Live(_) => Vec::new(),
-            PoseEvents::Held(held) => held.events,
+            PoseEvents::Held(held, _) => held.events,
         }
     }
 }
@@ -403,6 +411,12 @@ fn capture_poses(
     let move_limit =
         Duration::from_secs(cfg.turntable.move_timeout_s) * 2 + Duration::from_secs(10);
     if moving {
+        sink.event(&Event::Homing {
+            instruction: hw
+                .turntable
+                .is_manual()
+                .then(|| crate::turntable::manual::HOME_INSTRUCTION.to_string()),
+        });
         let home = notify::alive_during(sink, move_limit, || hw.turntable.home())?;
         if let Some(cell) = &hw.angle {
             cell.set(home.0);
@@ -422,7 +436,7 @@ fn capture_poses(
             let mut events = if at_once == 1 {
                 PoseEvents::Live(&mut *sink)
             } else {
-                PoseEvents::Held(Recorder::default())
+                PoseEvents::Held(Recorder::default(), sink.wants_frames())
             };
             let acquired = acquire(
                 spec,
@@ -459,6 +473,10 @@ fn capture_poses(
                 sink.event(&e);
             }
             let pose = pose?;
+            if sink.wants_frames() {
+                let last = a.frames.last().map(|f| f.sequence).unwrap_or_default();
+                sink.event(&detected_event(index, last, &info, &pose, spec.rig));
+            }
             match &pose.view {
                 Some((view, _)) => {
                     if let (Some(p), Some(r), Some(t)) = (planning.as_mut(), a.planned, a.tilt) {
@@ -492,6 +510,8 @@ fn capture_poses(
                 fraction: coverage.fraction(),
                 cells_covered: coverage.covered(),
                 cells_total: coverage.total(),
+                grid: [coverage.cols, coverage.rows],
+                counts: coverage.counts.clone(),
             });
             if cfg.plan.stop_when_sufficient
                 && sufficient(spec, &out, &coverage, info.width, info.height)
@@ -641,7 +661,19 @@ fn acquire(
     let mut frames = Vec::with_capacity(fpp);
     let mut grabbed = Grabbed::default();
     for _ in 0..fpp {
+        let before = frames.len();
         grabbed.grab(hw.source.as_mut(), timeout, angle, session, &mut frames)?;
+        if sink.wants_frames()
+            && frames.len() > before
+            && let Some(f) = frames.last()
+        {
+            sink.event(&Event::Frame {
+                index,
+                sequence: f.sequence,
+                grabbed_unix_ms: grabbed.grabbed_unix_ms,
+                image: event::FrameImage(std::sync::Arc::new(f.image.clone())),
+            });
+        }
         sink.event(&Event::Alive);
     }
     let name = (grabbed.source.take()).unwrap_or_else(|| format!("pose{index:02}"));
@@ -695,13 +727,56 @@ fn examine_batch(
     })
 }
 
+/// The corners of a pose's last frame for [`Event::Detected`]: the accepted view's, else those the
+/// detector labelled in a view it rejected (none when it rejected the view before detecting).
+fn detected_event(
+    index: usize,
+    sequence: u64,
+    info: &SourceInfo,
+    pose: &PoseData,
+    rig: &Rig,
+) -> Event {
+    let mut faces: Vec<event::DetectedFace> = Vec::new();
+    let mut push = |face: &str, uv: &nalgebra::Vector2<f64>| {
+        let corner = [uv.x as f32, uv.y as f32];
+        match faces.iter_mut().find(|f| f.face == face) {
+            Some(f) => f.corners.push(corner),
+            None => faces.push(event::DetectedFace {
+                face: face.to_string(),
+                corners: vec![corner],
+            }),
+        }
+    };
+    if let Some((view, names)) = &pose.view {
+        for (p, name) in view.points.iter().zip(names) {
+            push(name, &p.uv);
+        }
+    } else if let Some(det) = pose.preview.as_ref().and_then(|p| p.detection.as_ref()) {
+        for f in &det.faces {
+            let name = rig.faces.get(f.face).map_or("?", |face| face.name.as_str());
+            for c in &f.corners {
+                push(name, &c.uv);
+            }
+        }
+    }
+    Event::Detected {
+        index,
+        sequence,
+        width: info.width,
+        height: info.height,
+        faces,
+    }
+}
+
 /// What the grabs of one pose left besides their frames: the session file of the last, the name of
-/// the user's file behind it (photo runs), and why a photo could not be used.
+/// the user's file behind it (photo runs), why a photo could not be used, and when the last grab
+/// returned (wall clock, ms since the Unix epoch; for the live page's latency).
 #[derive(Debug, Default)]
 struct Grabbed {
     frame_file: Option<String>,
     source: Option<String>,
     unusable: Option<String>,
+    grabbed_unix_ms: f64,
 }
 
 impl Grabbed {
@@ -717,6 +792,9 @@ impl Grabbed {
         frames: &mut Vec<crate::capture::Frame>,
     ) -> Result<(), StationError> {
         let grabbed = source.grab(timeout);
+        self.grabbed_unix_ms = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64() * 1e3);
         let file = source.take_source_file();
         let recorded = match (file, &grabbed) {
             (Some(file), Err(CaptureError::Image { .. }) | Ok(_)) => {

@@ -215,6 +215,10 @@ impl SystemdNotifier {
                     (None, None) => format!("{pose}: planned"),
                 }
             }
+            Event::Homing { instruction } => match instruction {
+                Some(text) => format!("homing: {text}"),
+                None => "homing the turntable".to_string(),
+            },
             Event::PoseChosen {
                 index,
                 rotation_deg,
@@ -261,6 +265,7 @@ impl SystemdNotifier {
                 fraction,
                 cells_covered,
                 cells_total,
+                ..
             } => format!(
                 "{views} view(s), coverage {:.0}% ({cells_covered}/{cells_total} cells)",
                 fraction * 100.0
@@ -288,7 +293,7 @@ impl SystemdNotifier {
                 "spool: {} committed to {store}, {failed} refused, {waiting} waiting",
                 committed + already_stored
             ),
-            Event::Alive => return None,
+            Event::Alive | Event::Frame { .. } | Event::Detected { .. } => return None,
         };
         Some(one_line(&line))
     }

@@ -36,6 +36,10 @@ pub struct RunRequest {
     pub poses: Option<usize>,
     pub sweep_deg: Option<f64>,
     pub device_id: Option<String>,
+    /// Serve the live page here (http.listen).
+    pub http: Option<String>,
+    /// The live page's operator token file (http.token_file).
+    pub http_token_file: Option<PathBuf>,
     /// `KEY=VALUE` overrides, applied last.
     pub set: Vec<String>,
 }
@@ -186,6 +190,12 @@ pub fn build_config(
             "camera.device_id",
             &toml::Value::String(id.clone()).to_string(),
         )?;
+    }
+    if let Some(h) = &args.http {
+        set("http.listen", &toml::Value::String(h.clone()).to_string())?;
+    }
+    if let Some(f) = &args.http_token_file {
+        set("http.token_file", &quote(f))?;
     }
     for kv in &args.set {
         let (k, v) = kv

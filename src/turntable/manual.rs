@@ -17,6 +17,9 @@ impl Operator for Box<dyn Operator> {
     }
 }
 
+/// What the operator of a manual turntable is asked when the station homes it.
+pub const HOME_INSTRUCTION: &str = "turn the turntable to its 0° mark";
+
 /// A turntable turned by hand to marked angles. Positions are what the operator confirmed.
 #[derive(Debug)]
 pub struct ManualTurntable<O> {
@@ -81,7 +84,7 @@ impl<O: Operator> Turntable for ManualTurntable<O> {
     }
 
     fn home(&mut self) -> Result<Degrees, TurntableError> {
-        self.ask("turn the turntable to its 0° mark".into())?;
+        self.ask(HOME_INSTRUCTION.into())?;
         self.position = Degrees(0.0);
         Ok(self.position)
     }
