@@ -195,7 +195,7 @@ impl EventSink for JsonLines {
 }
 
 pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
-    let mut request = RunRequest::from(&args);
+    let request = RunRequest::from(&args);
     let prepared = station::setup::prepare(&request)?;
     // `stop` is the station's stop flag (signals and the page's Stop set it); `quit` only signals.
     let stop = Arc::new(AtomicBool::new(false));
@@ -211,27 +211,15 @@ pub fn run(args: CalibrateArgs, out: Output) -> anyhow::Result<u8> {
     };
     // With the page: run, show the outcome, and run again when the operator asks (a new run
     // directory each time) until the linger time passes or a signal comes.
-    let first = prepared.run_dir.clone();
-    let mut next = Some(prepared);
-    for n in 2.. {
-        let prepared = match next.take() {
-            Some(p) => p,
-            None => station::setup::prepare(&request)?,
-        };
-        let run_dir = prepared.run_dir.clone();
-        page.live.run_started(&run_dir);
-        let outcome = run_once(prepared, out, &stop, Some(&page.live));
-        page.finished(&run_dir, &outcome);
-        if page.wait(&quit, &mut || {}) == cubecal::live::Waited::Exit {
-            return outcome;
-        }
-        if let Err(e) = &outcome {
-            tracing::warn!(error = %e, "run ended with an error; starting the next as asked");
-        }
-        stop.store(false, std::sync::atomic::Ordering::SeqCst);
-        request.out = Some(super::live::numbered(&first, n));
-    }
-    Ok(cubecal::exit::INTERNAL)
+    page.runs(
+        prepared,
+        request,
+        &stop,
+        &quit,
+        &mut (),
+        |(), prepared, live| run_once(prepared, out, &stop, Some(live)),
+        |()| {},
+    )
 }
 
 /// One station run with its events rendered on the terminal (and on the live page, when open).
@@ -259,16 +247,8 @@ fn run_once(
         rig_path,
         run_dir: &run_dir,
     };
-    let run = |sink: &mut dyn EventSink| match live {
-        Some(live) => {
-            let mut page = live.sink();
-            let mut both = cubecal::live::Tee {
-                first: sink,
-                second: &mut page,
-            };
-            station::run(&spec, hw, &mut both, stop)
-        }
-        None => station::run(&spec, hw, sink, stop),
+    let run = |sink: &mut dyn EventSink| {
+        super::live::with_page(live, sink, |s| station::run(&spec, hw, s, stop))
     };
     let mut result = if out.json {
         run(&mut JsonLines)?

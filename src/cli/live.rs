@@ -8,8 +8,9 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
-use cubecal::live::{Live, Token, Waited};
-use cubecal::station::StationConfig;
+use cubecal::live::{Live, Tee, Token, Waited};
+use cubecal::station::setup::{self, Prepared, RunRequest};
+use cubecal::station::{EventSink, StationConfig};
 
 /// The live page's flags (each a config key of `[http]`).
 #[derive(Debug, Clone, clap::Args)]
@@ -83,34 +84,83 @@ impl Page {
     /// After a run: wait for the operator's Start, the linger time or `quit` (a signal); `tick` is
     /// called every 100 ms meanwhile.
     pub fn wait(&self, quit: &AtomicBool, tick: &mut dyn FnMut()) -> Waited {
-        match self.linger {
-            Some(s) if s.is_zero() => {}
-            Some(s) => say(&format!(
-                "the live page stays up at {} for {} s{}",
-                self.live.url(),
-                s.as_secs(),
-                if self.live.has_control() {
-                    " (Start runs again)"
-                } else {
-                    ""
-                }
-            )),
-            None => say(&format!(
-                "the live page stays up at {} until Ctrl-C / SIGTERM{}",
-                self.live.url(),
-                if self.live.has_control() {
-                    " (Start runs again)"
-                } else {
-                    ""
-                }
-            )),
+        let until = match self.linger {
+            Some(s) if s.is_zero() => None,
+            Some(s) => Some(format!("for {} s", s.as_secs())),
+            None => Some("until Ctrl-C / SIGTERM".to_string()),
+        };
+        if let Some(until) = until {
+            let again = if self.live.has_control() {
+                " (Start runs again)"
+            } else {
+                ""
+            };
+            say(&format!(
+                "the live page stays up at {} {until}{again}",
+                self.live.url()
+            ));
         }
         self.live.wait(self.linger, quit, tick)
+    }
+
+    /// The runs of `calibrate --http` and `serve --http`: `prepared` first, then, each time the
+    /// operator presses Start after a run, another in a new run directory (`numbered`), until the
+    /// wait after a run ends ([`Page::wait`]; `tick(state)` meanwhile). `run_once` runs one with the
+    /// page open; `stop` is cleared between runs. Returns the last run's outcome.
+    pub fn runs<S>(
+        &self,
+        prepared: Prepared,
+        mut request: RunRequest,
+        stop: &AtomicBool,
+        quit: &AtomicBool,
+        state: &mut S,
+        mut run_once: impl FnMut(&mut S, Prepared, &Live) -> anyhow::Result<u8>,
+        mut tick: impl FnMut(&mut S),
+    ) -> anyhow::Result<u8> {
+        let first = prepared.run_dir.clone();
+        let mut next = Some(prepared);
+        for n in 2.. {
+            let prepared = match next.take() {
+                Some(p) => p,
+                None => setup::prepare(&request)?,
+            };
+            let run_dir = prepared.run_dir.clone();
+            self.live.run_started(&run_dir);
+            let outcome = run_once(state, prepared, &self.live);
+            self.finished(&run_dir, &outcome);
+            if self.wait(quit, &mut || tick(state)) == Waited::Exit {
+                return outcome;
+            }
+            if let Err(e) = &outcome {
+                tracing::warn!(error = %e, "run ended with an error; starting the next as asked");
+            }
+            stop.store(false, std::sync::atomic::Ordering::SeqCst);
+            request.out = Some(numbered(&first, n));
+        }
+        Ok(cubecal::exit::INTERNAL)
+    }
+}
+
+/// `f` with `sink`, or with `sink` and the live page's sink both when the page is open.
+pub(super) fn with_page<R>(
+    live: Option<&Live>,
+    sink: &mut dyn EventSink,
+    f: impl FnOnce(&mut dyn EventSink) -> R,
+) -> R {
+    match live {
+        Some(live) => {
+            let mut page = live.sink();
+            f(&mut Tee {
+                first: sink,
+                second: &mut page,
+            })
+        }
+        None => f(sink),
     }
 }
 
 /// The run directory of the page's `n`-th run (n ≥ 2) when the first was `first`: `first-n`.
-pub(super) fn numbered(first: &Path, n: usize) -> PathBuf {
+fn numbered(first: &Path, n: usize) -> PathBuf {
     let mut name = first.as_os_str().to_os_string();
     name.push(format!("-{n}"));
     PathBuf::from(name)

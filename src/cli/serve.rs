@@ -108,32 +108,19 @@ fn serve(
         return serve_once(prepared, sink, stop, None);
     };
     // With the page: as `calibrate --http`, the page stays up after the run (until SIGTERM, or
-    // http.linger_s) and its Start runs the station again in a new run directory.
-    let first = prepared.run_dir.clone();
-    let mut next = Some(prepared);
-    for n in 2.. {
-        let prepared = match next.take() {
-            Some(p) => p,
-            None => setup::prepare(&request)?,
-        };
-        let run_dir = prepared.run_dir.clone();
-        page.live.run_started(&run_dir);
-        let outcome = serve_once(prepared, sink, stop, Some(&page.live));
-        page.finished(&run_dir, &outcome);
-        // The run's loop no longer pings the watchdog: the wait does (paced by the notifier).
-        let mut alive = || {
+    // http.linger_s) and its Start runs the station again in a new run directory. The run's loop
+    // no longer pings the watchdog during the wait: the tick does (paced by the notifier).
+    page.runs(
+        prepared,
+        request,
+        stop,
+        quit,
+        sink,
+        |sink, prepared, live| serve_once(prepared, sink, stop, Some(live)),
+        |sink| {
             sink.notifier.notify_event(&Event::Alive);
-        };
-        if page.wait(quit, &mut alive) == cubecal::live::Waited::Exit {
-            return outcome;
-        }
-        if let Err(e) = &outcome {
-            tracing::warn!(error = %e, "run ended with an error; starting the next as asked");
-        }
-        stop.store(false, Ordering::SeqCst);
-        request.out = Some(super::live::numbered(&first, n));
-    }
-    Ok(cubecal::exit::INTERNAL)
+        },
+    )
 }
 
 /// One station run for the service (and the live page, when open).
@@ -165,17 +152,7 @@ fn serve_once(
         rig_path,
         run_dir: &run_dir,
     };
-    let mut result = match live {
-        Some(live) => {
-            let mut page = live.sink();
-            let mut both = cubecal::live::Tee {
-                first: &mut *sink,
-                second: &mut page,
-            };
-            station::run(&spec, hw, &mut both, stop)?
-        }
-        None => station::run(&spec, hw, sink, stop)?,
-    };
+    let mut result = super::live::with_page(live, sink, |s| station::run(&spec, hw, s, stop))?;
     // The last status an operator sees in `systemctl status` starts with the verdict; the spool's
     // depth follows it.
     let verdict = cubecal::station::notify::verdict_line(&result.verdict);
