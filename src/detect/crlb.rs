@@ -3,7 +3,7 @@
 //! uses and the pixel noise of the render.
 //!
 //! A render ([`crate::render::render`]) is a noise-free image `μ(θ)` — radiance
-//! ([`render_radiance`]), blur, vignetting, gamma, scaled to grey levels ([`expected_image`]) — plus
+//! blurred by the lens before the pixels integrate it ([`render_radiance`]), vignetting, gamma, scaled to grey levels ([`expected_image`]) — plus
 //! independent Gaussian noise of σ grey levels and rounding to 8 bits (uniform, variance 1/12,
 //! counted as noise: [`noise_variance`]). For parameters `θ` of the image model, the Fisher
 //! information of a set of pixels is `I = (1/σ²) Σ ∂μ/∂θ ∂μ/∂θᵀ`, and the covariance of any unbiased
@@ -15,8 +15,8 @@
 //! through the camera and centres the vignetting on the principal point; the focal lengths, skew and a
 //! roll about the optical axis add an affine change of the image, the rig pose moves the face, the
 //! palette and the blur change the image's levels and edge width. Renders are of a crop of the frame
-//! ([`Crop`]: a camera with the crop's size and a principal point moved by its origin, padded by the
-//! blur kernel's radius), equal to the frame's pixels there.
+//! ([`Crop`]: a camera with the crop's size and a principal point moved by its origin; the renderer
+//! traces the scene beyond the crop as far as the lens blur reaches), equal to the frame's pixels there.
 //!
 //! The renderer samples each edge pixel on an `N × N` grid, so its image is a step function of the
 //! scene's position on the scale of `1/N` px; the differences must span several sub-samples. On an
@@ -56,7 +56,7 @@
 use nalgebra::{DMatrix, DVector, Matrix2, Rotation3, Vector2, Vector3};
 
 use crate::camera::{Camera, Pose, idx};
-use crate::render::{RenderSettings, SyntheticError, gaussian_blur, render_radiance, response};
+use crate::render::{RenderSettings, SyntheticError, render_radiance, response};
 use crate::rig::{BoardRegion, Rig};
 
 /// A rectangle of the frame: columns `x0..x0 + width`, rows `y0..y0 + height`.
@@ -135,18 +135,17 @@ pub fn expected_image(
     crop: Crop,
 ) -> Result<Vec<f64>, SyntheticError> {
     let [w, h] = camera.image_size;
-    // The blur's kernel radius: beyond it the crop's pixels are those of the frame (where the padded
-    // crop meets the frame's border, both clamp alike).
-    let pad = (4.0 * settings.blur_sigma_px).ceil() as u32 + 1;
-    let (px0, py0) = (crop.x0.saturating_sub(pad), crop.y0.saturating_sub(pad));
-    let px1 = (crop.x0 + crop.width + pad).min(w);
-    let py1 = (crop.y0 + crop.height + pad).min(h);
+    // The renderer traces the scene beyond the crop as far as the lens blur reaches; one pixel of
+    // padding gives the crop's edge pixels the neighbours the renderer classifies them by (where the
+    // padded crop meets the frame's border, both stop alike), so the crop's pixels are the frame's.
+    let (px0, py0) = (crop.x0.saturating_sub(1), crop.y0.saturating_sub(1));
+    let px1 = (crop.x0 + crop.width + 1).min(w);
+    let py1 = (crop.y0 + crop.height + 1).min(h);
     let mut cam = camera.clone();
     cam.image_size = [px1 - px0, py1 - py0];
     cam.params[idx::CX] -= f64::from(px0);
     cam.params[idx::CY] -= f64::from(py0);
-    let radiance = render_radiance(rig, &cam, cam_from_rig, settings)?;
-    let img = gaussian_blur(&radiance, settings.blur_sigma_px);
+    let img = render_radiance(rig, &cam, cam_from_rig, settings)?;
     let respond = response(settings, w, h, camera.cx(), camera.cy());
     let pw = (px1 - px0) as usize;
     let mut out = Vec::with_capacity(crop.len());
