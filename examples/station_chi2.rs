@@ -38,6 +38,13 @@ fn main() {
         set_key(&mut t, "solve.weighting", "covariance").unwrap();
         // A loaded machine delays the simulated turntable's replies beyond the default wait.
         set_key(&mut t, "turntable.reply_timeout_ms", "20000").unwrap();
+        // `SET=key=value,key=value`: more station settings (e.g. `synthetic.noise=0`).
+        if let Ok(extra) = std::env::var("SET") {
+            for kv in extra.split(',').filter(|kv| !kv.is_empty()) {
+                let (k, v) = kv.split_once('=').expect("SET holds key=value pairs");
+                set_key(&mut t, k, v).unwrap();
+            }
+        }
         let cfg = StationConfig::from_table(t, "station_chi2").unwrap();
         let truth = cfg.synthetic.camera();
         let hw = hardware::open(&cfg, &rig, None).unwrap();
@@ -84,6 +91,9 @@ fn main() {
         if !rep.std_dev.contains_key("k3") {
             opts.fix.k3 = true;
         }
+        if std::env::var_os("ORACLE").is_some() {
+            oracle(&fit, &truth, obs.image_size, &cfg, &rep, seed, &rig);
+        }
         let c = cubecal::calib::solve(&fit, obs.image_size, &opts).unwrap();
         let equal = (
             c.camera.params.to_vec(),
@@ -107,6 +117,15 @@ fn main() {
             let z: Vec<String> = (0..4)
                 .map(|k| format!("{:+6.2}", e[k] / c[(k, k)].sqrt()))
                 .collect();
+            if std::env::var_os("ORACLE").is_some() {
+                line += &format!(
+                    " [cx {:+.4} ± {:.4} px, cy {:+.4} ± {:.4}]",
+                    e[2],
+                    c[(2, 2)].sqrt(),
+                    e[3],
+                    c[(3, 3)].sqrt()
+                );
+            }
             line += &format!(
                 "  {} χ² {chi2:6.2}{}  |",
                 z.join(" "),
@@ -127,5 +146,183 @@ fn main() {
             chi2s.len(),
             0.05 * m
         );
+    }
+}
+
+/// `ORACLE=1`: each fit view posed in the TRUE camera; the detected corners' errors against that
+/// camera (mean, and their whitened size against each corner's own covariance), binned by image
+/// column; then the same views re-solved from the true projections plus Gaussian noise drawn from
+/// each corner's covariance: the χ² a detector with honest, unbiased corners would give.
+fn oracle(
+    fit: &[cubecal::calib::View],
+    truth: &cubecal::camera::Camera,
+    size: [u32; 2],
+    cfg: &StationConfig,
+    rep: &cubecal::calib::report::CalibrationReport,
+    seed: u64,
+    rig: &Rig,
+) {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut sim = Vec::new();
+    let (mut n, mut w2, mut ss, mut mean) = (0usize, 0.0, 0.0, nalgebra::Vector2::zeros());
+    let bins = 8;
+    let mut by_col = vec![(0usize, nalgebra::Vector2::<f64>::zeros()); bins];
+    for v in fit {
+        let Ok(pose) = cubecal::calib::pose::solve_pose(truth, v) else {
+            continue;
+        };
+        let mut pts = Vec::new();
+        for (p, r) in v.points.iter().zip(&pose.residuals) {
+            let pred = p.uv - r;
+            let cov = p
+                .cov
+                .unwrap_or_else(|| nalgebra::Matrix2::identity() * 0.0004);
+            let inv = cov.try_inverse().unwrap();
+            w2 += r.dot(&(inv * r)) / 2.0;
+            ss += r.norm_squared() / 2.0;
+            mean += r;
+            n += 1;
+            let b = ((p.uv.x / f64::from(size[0])) * bins as f64).clamp(0.0, bins as f64 - 1.0)
+                as usize;
+            by_col[b].0 += 1;
+            by_col[b].1 += r;
+            let l = cov.cholesky().unwrap().l();
+            let z = nalgebra::Vector2::new(
+                StandardNormal.sample(&mut rng),
+                StandardNormal.sample(&mut rng),
+            );
+            pts.push(cubecal::calib::Correspondence {
+                xyz: p.xyz,
+                uv: pred + l * z,
+                cov: p.cov,
+            });
+        }
+        sim.push(cubecal::calib::View {
+            name: v.name.clone(),
+            points: pts,
+        });
+    }
+    // Errors by the face's angle from frontal in the true pose, and the equal-weight solve without
+    // the faces beyond each cut.
+    let cuts = [45.0, 60.0, 65.0, 70.0, 75.0, 80.0, 90.0];
+    let mut by_angle = vec![(0usize, 0.0f64, nalgebra::Vector2::<f64>::zeros()); cuts.len()];
+    let mut angle_of: Vec<Vec<f64>> = Vec::new();
+    for v in fit {
+        let Ok(pose) = cubecal::calib::pose::solve_pose(truth, v) else {
+            angle_of.push(vec![0.0; v.points.len()]);
+            continue;
+        };
+        let eye = pose.cam_from_rig.centre();
+        let mut angles = Vec::new();
+        for (p, r) in v.points.iter().zip(&pose.residuals) {
+            let face = rig
+                .faces
+                .iter()
+                .find(|f| f.normal().dot(&(p.xyz - f.corner_xyz(0, 0))).abs() < 1e-6)
+                .unwrap();
+            let a = face.normal().angle(&(eye - p.xyz)).to_degrees();
+            angles.push(a);
+            let b = cuts.iter().position(|&c| a < c).unwrap_or(cuts.len() - 1);
+            by_angle[b].0 += 1;
+            by_angle[b].1 += r.norm_squared() / 2.0;
+            by_angle[b].2 += r;
+        }
+        angle_of.push(angles);
+    }
+    let text: Vec<String> = by_angle
+        .iter()
+        .zip(cuts)
+        .filter(|(b, _)| b.0 > 0)
+        .map(|(b, c)| {
+            format!(
+                "<{c}°: {} rms {:.4} mean ({:+.4},{:+.4})",
+                b.0,
+                (b.1 / b.0 as f64).sqrt(),
+                b.2.x / b.0 as f64,
+                b.2.y / b.0 as f64
+            )
+        })
+        .collect();
+    println!("    oracle seed {seed} by face angle: {}", text.join(" | "));
+    let mut eq = cfg.solve_options("station_chi2").unwrap();
+    eq.weighting = cubecal::calib::Weighting::Equal;
+    if !rep.std_dev.contains_key("k3") {
+        eq.fix.k3 = true;
+    }
+    for cut in [60.0, 65.0, 70.0, 75.0, 90.0] {
+        let kept: Vec<cubecal::calib::View> = fit
+            .iter()
+            .zip(&angle_of)
+            .map(|(v, a)| cubecal::calib::View {
+                name: v.name.clone(),
+                points: v
+                    .points
+                    .iter()
+                    .zip(a)
+                    .filter(|(_, a)| **a < cut)
+                    .map(|(p, _)| *p)
+                    .collect(),
+            })
+            .filter(|v| v.points.len() >= 6)
+            .collect();
+        let Ok(c) = cubecal::calib::solve(&kept, size, &eq) else {
+            continue;
+        };
+        let pos: Vec<usize> = NAMES
+            .iter()
+            .map(|nm| c.free_params.iter().position(|f| f == nm).unwrap())
+            .collect();
+        let cv = DMatrix::from_fn(4, 4, |i, j| c.covariance[(pos[i], pos[j])]);
+        let e = DVector::from_iterator(4, (0..4).map(|k| c.camera.params[k] - truth.params[k]));
+        let chi2 = e.dot(&cv.clone().cholesky().unwrap().solve(&e));
+        println!(
+            "    faces < {cut}° (equal weights): cx {:+.4} ± {:.4}, cy {:+.4} ± {:.4}, χ² {chi2:.2}",
+            e[2],
+            cv[(2, 2)].sqrt(),
+            e[3],
+            cv[(3, 3)].sqrt()
+        );
+    }
+    let cols: Vec<String> = by_col
+        .iter()
+        .map(|(k, s)| {
+            if *k == 0 {
+                "      -      ".into()
+            } else {
+                format!("{:+.4},{:+.4}", s.x / *k as f64, s.y / *k as f64)
+            }
+        })
+        .collect();
+    println!(
+        "    oracle seed {seed}: {n} corners, RMS error {:.4} px, mean error ({:+.4}, {:+.4}) px, whitened ½rᵀC⁻¹r {:.2}; mean error by image column eighth: {}",
+        (ss / n as f64).sqrt(),
+        mean.x / n as f64,
+        mean.y / n as f64,
+        w2 / n as f64,
+        cols.join(" ")
+    );
+    let mut opts = cfg.solve_options("station_chi2").unwrap();
+    if !rep.std_dev.contains_key("k3") {
+        opts.fix.k3 = true;
+    }
+    for weighting in [
+        cubecal::calib::Weighting::Covariance,
+        cubecal::calib::Weighting::Equal,
+    ] {
+        opts.weighting = weighting;
+        let c = cubecal::calib::solve(&sim, size, &opts).unwrap();
+        let pos: Vec<usize> = NAMES
+            .iter()
+            .map(|nm| c.free_params.iter().position(|f| f == nm).unwrap())
+            .collect();
+        let cv = DMatrix::from_fn(4, 4, |i, j| c.covariance[(pos[i], pos[j])]);
+        let e = DVector::from_iterator(4, (0..4).map(|k| c.camera.params[k] - truth.params[k]));
+        let chi2 = e.dot(&cv.clone().cholesky().unwrap().solve(&e));
+        let z: Vec<String> = (0..4)
+            .map(|k| format!("{:+6.2}", e[k] / cv[(k, k)].sqrt()))
+            .collect();
+        println!("    oracle {weighting:?}: {} χ² {chi2:6.2}", z.join(" "));
     }
 }

@@ -32,7 +32,7 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use image::GrayImage;
 use nalgebra::{Matrix2, Vector2};
 
-use super::complete::{Completed, Fitted, lattice_curvature};
+use super::complete::{Completed, Fitted, Shade, lattice_curvature, shading_correction};
 use super::label::FaceDetection;
 use super::refine;
 
@@ -93,6 +93,7 @@ pub fn refit_on_own_lattice(
         // Straight-edge fits and their sensitivity to the lines' curvature.
         let mut fits: BTreeMap<(i32, i32), Fitted> = BTreeMap::new();
         let mut shifts: HashMap<(i32, i32), Matrix2<f64>> = HashMap::new();
+        let mut shades: BTreeMap<(i32, i32), Shade> = BTreeMap::new();
         for c in &face.corners {
             let (r, cc) = (c.row as i32, c.col as i32);
             let (Some(a), Some(b)) = (step(r, cc, 0, 1), step(r, cc, 1, 0)) else {
@@ -102,6 +103,7 @@ pub fn refit_on_own_lattice(
                 Ok(f) => {
                     fits.insert((r, cc), Fitted::from_refined(&f));
                     shifts.insert((r, cc), f.curvature_shift);
+                    shades.insert((r, cc), Shade::of(&f));
                 }
                 Err(why) => {
                     tracing::debug!(
@@ -122,7 +124,7 @@ pub fn refit_on_own_lattice(
                 lattice_curvature(&fits, k.0, k.1, 0, 1).unwrap_or(0.0),
                 lattice_curvature(&fits, k.0, k.1, 1, 0).unwrap_or(0.0),
             );
-            c.uv = f.uv + shift * kappa;
+            c.uv = f.uv + shift * kappa + shading_correction(&shades, k.0, k.1);
             c.sigma_px = f.sigma_px;
             c.cov = f.cov;
             out.refitted += 1;

@@ -175,6 +175,15 @@ pub struct Refined {
     /// curvatures `κ` is `uv + curvature_shift·κ`. Line `i` runs along `uᵢ` (`a` or `b`) with left
     /// normal `nᵢ = (−uᵢ.y, uᵢ.x)`; `κᵢ > 0` bends it towards `nᵢ`: `q = c + t·uᵢ + κᵢ·t²/2·nᵢ`.
     pub curvature_shift: Matrix2<f64>,
+    /// Fitted level `m` (grey levels): the mean of the four squares' levels at the corner.
+    pub level: f64,
+    /// First-order shift of `uv` per unit gradient (grey levels per px, image axes) of the level `m`
+    /// and of the half-contrast `|h|` across the window, columns `[∂m/∂x, ∂m/∂y, ∂|h|/∂x,
+    /// ∂|h|/∂y]`: the corner had the model carried the shading `g` (`m + ∇m·(q − c)` and
+    /// `|h| + ∇|h|·(q − c)` instead of constants) is `uv + shading_shift·g`. Vignetting and uneven
+    /// light make both vary across a window; the model's constant levels then pull the corner
+    /// toward the brighter side (see the module docs). In image units also for a mapped fit.
+    pub shading_shift: SMatrix<f64, 2, 4>,
 }
 
 /// Why a fit was not accepted.
@@ -519,6 +528,10 @@ struct Eval {
     /// ∂I/∂dᵢ.
     dg1: Lane,
     dg2: Lane,
+    /// Offsets from the corner and the junction's profile `G = tanh·tanh`, for the shading terms.
+    dx: Lane,
+    dy: Lane,
+    g: Lane,
 }
 
 #[inline(always)]
@@ -530,6 +543,9 @@ fn eval(grp: &Group<'_>, md: &Model) -> Eval {
         t2: [0.0; LANES],
         dg1: [0.0; LANES],
         dg2: [0.0; LANES],
+        dx: [0.0; LANES],
+        dy: [0.0; LANES],
+        g: [0.0; LANES],
     };
     let (xs, ys, vs, ws) = (grp.x, grp.y, grp.v, grp.w);
     for i in 0..LANES {
@@ -557,6 +573,9 @@ fn eval(grp: &Group<'_>, md: &Model) -> Eval {
         e.t2[i] = t2;
         e.dg1[i] = dg1;
         e.dg2[i] = dg2;
+        e.dx[i] = dx;
+        e.dy[i] = dy;
+        e.g[i] = g1 * g2;
     }
     e
 }
@@ -569,13 +588,15 @@ fn lane_sum(acc: &[f32]) -> f64 {
 /// The normal equations of the model at `p` (coordinates relative to `p0`): `JᵀJ`, `Jᵀr` and the sum
 /// of squared residuals; with `CURVATURE`, also `Jᵀ J_κ`, the cross products with the residuals'
 /// derivatives in the two lines' curvatures `κ` (`∂dᵢ/∂κᵢ = −tᵢ²/2`, see
-/// [`Refined::curvature_shift`]), zero otherwise.
+/// [`Refined::curvature_shift`]) and in the four shading gradients (`(q − c)` and
+/// `sign(h)·(q − c)·G`, see [`Refined::shading_shift`]), zero otherwise.
 fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
     const HALF: usize = LANES / 2;
     let md = Model::new(p);
     // Upper triangle of [J r]ᵀ[J r], row by row, one lane per pixel of a group.
     let mut acc = [[0.0_f32; HALF]; 36];
-    let mut cross = [[[0.0_f32; HALF]; 7]; 2];
+    let mut cross = [[[0.0_f32; HALF]; 7]; EXTRA];
+    let sign_h = if md.h < 0.0 { -1.0_f32 } else { 1.0 };
     for grp in win.groups() {
         let e = eval(&grp, &md);
         let rows = [e.j[0], e.j[1], e.j[2], e.j[3], e.j[4], e.j[5], e.j[6], e.r];
@@ -605,15 +626,21 @@ fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
         }
         sums!(5: 0, 12: 1, 18: 2, 23: 3, 27: 4, 30: 5, 31: 6, 32: 7);
         if CURVATURE {
+            // (Padding pixels have Jacobian rows of 0, so their extra columns need no weight.)
             let jk = |i: usize| {
+                let sg = sign_h * e.g[i];
                 [
                     -0.5 * e.dg1[i] * e.t1[i] * e.t1[i],
                     -0.5 * e.dg2[i] * e.t2[i] * e.t2[i],
+                    e.dx[i],
+                    e.dy[i],
+                    sg * e.dx[i],
+                    sg * e.dy[i],
                 ]
             };
             for i in 0..HALF {
                 let (lo, hi) = (jk(i), jk(i + HALF));
-                for k in 0..2 {
+                for k in 0..EXTRA {
                     for a in 0..7 {
                         cross[k][a][i] += e.j[a][i] * lo[k] + e.j[a][i + HALF] * hi[k];
                     }
@@ -643,7 +670,7 @@ fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
         }
     }
     if CURVATURE {
-        for k in 0..2 {
+        for k in 0..EXTRA {
             for a in 0..7 {
                 out.cross[(a, k)] = lane_sum(&cross[k][a]);
             }
@@ -652,21 +679,28 @@ fn accumulate<const CURVATURE: bool>(win: &Window, p: &P) -> Normal {
     out
 }
 
+/// Terms beside the model's seven parameters whose first-order effect on the corner a converged fit
+/// reports: the two lines' curvatures and the four shading gradients.
+const EXTRA: usize = 6;
+
 /// The normal equations at one point (see [`accumulate`]).
 struct Normal {
     jtj: SMatrix<f64, 7, 7>,
     jtr: P,
     ssr: f64,
-    cross: SMatrix<f64, 7, 2>,
+    cross: SMatrix<f64, 7, EXTRA>,
 }
 
-/// The first-order shift of the corner per unit curvature of each line ([`Refined::curvature_shift`]) at
-/// a converged straight-line fit with normal equations `n` (accumulated with the curvature terms):
-/// with the curvatures held at `κ` instead of 0, the normal equations move the seven parameters by
-/// `−(JᵀJ)⁻¹·Jᵀ J_κ·κ`.
-fn curvature_shift(n: &Normal) -> Option<Matrix2<f64>> {
+/// The first-order shift of the corner per unit curvature of each line ([`Refined::curvature_shift`])
+/// and per unit shading gradient ([`Refined::shading_shift`]) at a converged fit with normal
+/// equations `n` (accumulated with the extra terms): with a term held at `κ` instead of 0, the
+/// normal equations move the seven parameters by `−(JᵀJ)⁻¹·Jᵀ J_κ·κ`.
+fn extra_shifts(n: &Normal) -> Option<(Matrix2<f64>, SMatrix<f64, 2, 4>)> {
     let shift = -(n.jtj.cholesky()?.solve(&n.cross));
-    Some(shift.fixed_view::<2, 2>(0, 0).into_owned())
+    Some((
+        shift.fixed_view::<2, 2>(0, 0).into_owned(),
+        shift.fixed_view::<2, 4>(0, 2).into_owned(),
+    ))
 }
 
 /// Whether the junction `p`'s quadrants (pixels beyond one edge width `s` of both lines) alternate:
@@ -973,16 +1007,30 @@ fn refine_in(
     // the realistic synthetic set RMS / (√2 σ) went from 0.55 to 0.66 (σ still on the safe side),
     // on the hard set (noise-dominated) 0.93 to 0.94.
     let mut cov_c = unit_cov.fixed_view::<2, 2>(0, 0).into_owned() * noise_var;
+    let (curvature_shift, mut shading_shift) =
+        extra_shifts(&normal).ok_or(RefineFailure::Degenerate)?;
     let uv = match map {
         None => p0 + c,
         Some(m) => {
             let (uv, jac) = m.to_image(q0 + c).ok_or(RefineFailure::Degenerate)?;
             cov_c = jac * cov_c * jac.transpose();
+            // The shift in the plane to the image (`jac`), and image gradients to the plane's
+            // (`∇_q = jacᵀ ∇_uv`).
+            let jt = jac.transpose();
+            let (sm, sh) = (
+                shading_shift.fixed_view::<2, 2>(0, 0) * jt,
+                shading_shift.fixed_view::<2, 2>(0, 2) * jt,
+            );
+            shading_shift = SMatrix::<f64, 2, 4>::from_columns(&[
+                jac * sm.column(0),
+                jac * sm.column(1),
+                jac * sh.column(0),
+                jac * sh.column(1),
+            ]);
             uv
         }
     };
     let sigma_px = (cov_c.trace() / 2.0).max(0.0).sqrt();
-    let curvature_shift = curvature_shift(&normal).ok_or(RefineFailure::Degenerate)?;
     Ok(Refined {
         uv,
         sigma_px,
@@ -991,6 +1039,8 @@ fn refine_in(
         residual,
         edge_width: p[4],
         curvature_shift,
+        level: p[5],
+        shading_shift,
     })
 }
 

@@ -43,6 +43,7 @@
 use image::GrayImage;
 use nalgebra::{Matrix2, SMatrix, Vector2};
 
+use super::complete::{Shade, shading_correction};
 use super::face::FaceDetection;
 use super::refine::{PlaneMap, refine_mapped};
 use super::{DetectError, FrameDetection};
@@ -390,6 +391,8 @@ fn refit(
     let mut out = Rerefined::default();
     for face in &mut det.faces {
         let steps = corner_steps(face);
+        // Each refitted corner's shading, for the correction applied once the face is done.
+        let mut shades = std::collections::BTreeMap::new();
         for (corner, step) in face.corners.iter_mut().zip(steps) {
             out.corners += 1;
             let Some((a, b)) = step else {
@@ -410,6 +413,7 @@ fn refit(
                     corner.uv = f.uv;
                     corner.sigma_px = f.sigma_px;
                     corner.cov = f.cov;
+                    shades.insert((corner.row as i32, corner.col as i32), Shade::of(&f));
                     out.refitted += 1;
                 }
                 Err(why) => {
@@ -420,6 +424,13 @@ fn refit(
                         "undistorted refit failed; corner kept"
                     );
                 }
+            }
+        }
+        // The shading across each window, from the refitted neighbours' levels (as in detection).
+        for corner in &mut face.corners {
+            let key = (corner.row as i32, corner.col as i32);
+            if shades.contains_key(&key) {
+                corner.uv += shading_correction(&shades, key.0, key.1);
             }
         }
     }
