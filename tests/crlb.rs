@@ -4,6 +4,9 @@
 //! on the evaluation sets come from `cargo run --release --example crlb -- hard 24 target/detect_eval`.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stderr)]
 
+#[path = "support/normal.rs"]
+mod normal;
+
 use cubecal::camera::{Camera, Pose};
 use cubecal::detect::crlb::{
     Crop, LOCAL_PARAMS, Param, View, efficient_position_covariance, expected_image, noise_variance,
@@ -13,6 +16,7 @@ use cubecal::render::correspondences::look_at;
 use cubecal::render::{Palette, RenderSettings};
 use cubecal::rig::Rig;
 use nalgebra::{Vector2, Vector3};
+use normal::{normal_cdf, normal_pdf};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -36,22 +40,14 @@ fn board() -> Rig {
     Rig::from_toml_str(toml, "board.toml").unwrap().0
 }
 
-/// The discrete Gaussian kernel of the renderer's blur (radius ⌈4σ⌉, normalised).
-fn kernel(sigma: f64) -> Vec<f64> {
-    let r = (4.0 * sigma).ceil() as i64;
-    let k: Vec<f64> = (-r..=r)
-        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp())
-        .collect();
-    let total: f64 = k.iter().sum();
-    k.into_iter().map(|v| v / total).collect()
-}
-
 /// A frontal, axis-aligned, high-contrast corner: the bound on its position over a square block of
-/// pixels is the closed form of a blurred step edge. With the image `m + h·P(x)·P(y)` (grey levels;
-/// `P` the pixel-integrated sign across the edge, blurred by the kernel `K`), moving the corner by
-/// `δx` changes pixel `(i, j)` by `−2h·K(j − j_c)·P(y_i)·δx`, so `I_xx = (2h/σ)² Σ_j K(j − j_c)²
-/// Σ_i P(y_i)²`, and for a Gaussian of σ_b and a long block `Σ K² ≈ 1/(2√π σ_b)`, `Σ P² ≈ n −
-/// 4s/√π` (`n` rows, `s² = σ_b² + 1/12`).
+/// pixels is the closed form of a blurred step edge. The renderer blurs the scene (a Gaussian of σ_b)
+/// before the pixels integrate it, so with the image `m + h·P(x)·P(y)` (grey levels), pixel `j` of an
+/// edge at `e` holds `P(j) = ∫ over [j−½, j+½] of (2Φ((x − e)/σ_b) − 1) dx = 2σ_b[Ψ(t₊) − Ψ(t₋)] − 1`
+/// (`Ψ(t) = tΦ(t) + φ(t)`, `t± = (j ± ½ − e)/σ_b`), and moving the corner by `δx` changes pixel `(i, j)`
+/// by `−2h·K(j − e)·P(y_i)·δx` with `K` the box ⊛ Gaussian kernel, `K(d) = Φ((d + ½)/σ_b) −
+/// Φ((d − ½)/σ_b)`. So `I_xx = (2h/σ)² Σ_j K(j − e)² Σ_i P(y_i)²`, and for a long block `Σ K² ≈
+/// 1/(2√π s)`, `Σ P² ≈ n − 4s/√π` (`n` rows, `s² = σ_b² + 1/12`).
 #[test]
 fn frontal_corner_bound_is_the_step_edge_closed_form() {
     let rig = board();
@@ -104,36 +100,29 @@ fn frontal_corner_bound_is_the_step_edge_closed_form() {
 
     // The closed form on the pixel grid.
     let h = 255.0 * (white - black) / 2.0;
-    let k = kernel(blur);
-    let r = (k.len() / 2) as i64;
-    let sign = |p: i64, edge: f64| 2.0 * (p as f64 + 0.5 - edge).clamp(0.0, 1.0) - 1.0;
+    let psi = |t: f64| t * normal_cdf(t) + normal_pdf(t);
     let profile = |p: i64, edge: f64| -> f64 {
-        (-r..=r)
-            .map(|o| k[(o + r) as usize] * sign(p - o, edge))
-            .sum()
+        let t = |d: f64| (p as f64 + d - edge) / blur;
+        2.0 * blur * (psi(t(0.5)) - psi(t(-0.5))) - 1.0
     };
-    let slope = |p: i64, centre: i64| -> f64 {
-        let o = p - centre;
-        if o.abs() <= r {
-            2.0 * k[(o + r) as usize]
-        } else {
-            0.0
-        }
+    let slope = |p: i64, edge: f64| -> f64 {
+        let t = |d: f64| (p as f64 + d - edge) / blur;
+        2.0 * (normal_cdf(t(0.5)) - normal_cdf(t(-0.5)))
     };
     let range = |c: i64| (c - i64::from(half))..=(c + i64::from(half));
     let (sk2x, sp2y): (f64, f64) = (
-        range(100).map(|j| slope(j, 100).powi(2)).sum(),
+        range(100).map(|j| slope(j, xc).powi(2)).sum(),
         range(80).map(|i| profile(i, yc).powi(2)).sum(),
     );
     let (sk2y, sp2x): (f64, f64) = (
-        range(80).map(|i| slope(i, 80).powi(2)).sum(),
+        range(80).map(|i| slope(i, yc).powi(2)).sum(),
         range(100).map(|j| profile(j, xc).powi(2)).sum(),
     );
     let ixy: f64 = range(100)
-        .map(|j| slope(j, 100) * profile(j, xc))
+        .map(|j| slope(j, xc) * profile(j, xc))
         .sum::<f64>()
         * range(80)
-            .map(|i| slope(i, 80) * profile(i, yc))
+            .map(|i| slope(i, yc) * profile(i, yc))
             .sum::<f64>();
     let info = nalgebra::Matrix2::new(sk2x * sp2y, ixy, ixy, sk2y * sp2x) * (h * h / var);
     let closed = info.try_inverse().unwrap();
@@ -147,7 +136,7 @@ fn frontal_corner_bound_is_the_step_edge_closed_form() {
     let s = (blur * blur + 1.0 / 12.0).sqrt();
     let n = f64::from(2 * half + 1);
     let pi_sqrt = std::f64::consts::PI.sqrt();
-    let continuous = var / ((2.0 * h).powi(2) / (2.0 * pi_sqrt * blur) * (n - 4.0 * s / pi_sqrt));
+    let continuous = var / ((2.0 * h).powi(2) / (2.0 * pi_sqrt * s) * (n - 4.0 * s / pi_sqrt));
     let rel = cov[(0, 0)] / continuous - 1.0;
     assert!(
         rel.abs() < 0.03,

@@ -3,6 +3,9 @@
 //! and the `cubecal render` command.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::print_stderr)]
 
+#[path = "support/normal.rs"]
+mod normal;
+
 use std::path::Path;
 use std::time::Duration;
 
@@ -16,6 +19,7 @@ use cubecal::render::{
 };
 use cubecal::rig::Rig;
 use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
+use normal::normal_cdf;
 
 fn fixture_rig(name: &str) -> Rig {
     let path = Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -120,8 +124,8 @@ fn scaled(camera: &Camera, k: u32) -> Camera {
     c
 }
 
-/// A band-limited image of the rig: rendered exactly at 5× resolution (box-filtered, 4×4 samples per
-/// high-resolution edge pixel, i.e. 400 per output pixel), blurred by a Gaussian of σ = `blur_px`
+/// A band-limited image of the rig: rendered exactly at 5× resolution (box-filtered, 8×8 samples per
+/// high-resolution edge pixel, i.e. 1600 per output pixel), blurred by a Gaussian of σ = `blur_px`
 /// output pixels, then sampled at the output pixel centres. Sampling a box-filtered (not band-limited)
 /// image directly makes any sub-pixel corner estimator "pixel-lock" by a few hundredths of a pixel
 /// (measured here: 0.02–0.04 px for blur 0.7–1.5 px applied after sampling, independent of the
@@ -131,7 +135,7 @@ fn band_limited(rig: &Rig, camera: &Camera, pose: &Pose, blur_px: f64) -> Linear
     const K: u32 = 5;
     let hi_cam = scaled(camera, K);
     let settings = RenderSettings {
-        supersample: 4,
+        supersample: 8,
         ..RenderSettings::default()
     };
     let hi = gaussian_blur(
@@ -173,9 +177,9 @@ fn corner_errors(rig: &Rig, camera: &Camera, pose: &Pose) -> (f64, f64, usize) {
 }
 
 /// The renderer's accuracy: saddle fits on band-limited renders land on the ground truth.
-/// Measured when written: flat board 54 corners, max 0.0022 px, RMS 0.0008 px; cube (2× crop) 117
-/// corners, max 0.0029 px, RMS 0.0010 px. The residual is mostly the 4×4 sampling of the 5× render
-/// (8×8 gives max 0.0009 / 0.0023 px at twice the test time).
+/// Measured (renderer version 2): flat board 54 corners, max 0.0009 px, RMS 0.0005 px; cube (2× crop)
+/// 117 corners, max 0.0045 px, RMS 0.0009 px. The residual is mostly the sampling of the 5× render:
+/// at 4×4 the cube's max is 0.0050 px (its horizontal edges are located to 1/8 of a 5× pixel).
 #[test]
 fn rendered_corners_match_ground_truth_within_5_millipixels() {
     let camera = small_camera();
@@ -442,30 +446,38 @@ fn adaptive_supersampling_matches_full_supersampling() {
     };
     let adaptive = render_radiance(&rig, &camera, &pose, &settings).unwrap();
     // Brute force: render at 6× resolution with 1 sample per pixel, then box-average 6×6 blocks.
+    // The supersampling grid's sub-row `a` is shifted by (a − 2.5)/36 px in x (render's
+    // `sub_sample`), i.e. (a − 2.5)/6 px of the 6× image: row `a` of each block is taken from a
+    // render whose principal point is moved by that much (distortion acts in normalised
+    // coordinates, so the whole image shifts alike).
     let n = 6.0;
-    let mut big = camera.clone();
-    big.image_size = [120 * 6, 90 * 6];
-    big.params[0] *= n;
-    big.params[1] *= n;
-    big.params[2] = (camera.cx() + 0.5) * n - 0.5;
-    big.params[3] = (camera.cy() + 0.5) * n - 0.5;
-    let hi = render_radiance(
-        &rig,
-        &big,
-        &pose,
-        &RenderSettings {
-            supersample: 1,
-            ..settings
-        },
-    )
-    .unwrap();
+    let hi: Vec<_> = (0..6)
+        .map(|a| {
+            let mut big = camera.clone();
+            big.image_size = [120 * 6, 90 * 6];
+            big.params[0] *= n;
+            big.params[1] *= n;
+            big.params[2] = (camera.cx() + 0.5) * n - 0.5 - (a as f64 - 2.5) / n;
+            big.params[3] = (camera.cy() + 0.5) * n - 0.5;
+            render_radiance(
+                &rig,
+                &big,
+                &pose,
+                &RenderSettings {
+                    supersample: 1,
+                    ..settings
+                },
+            )
+            .unwrap()
+        })
+        .collect();
     let mut worst: f64 = 0.0;
     for i in 0..90 {
         for j in 0..120 {
             let mut s = 0.0;
             for a in 0..6 {
                 for b in 0..6 {
-                    s += hi.get(i * 6 + a, j * 6 + b);
+                    s += hi[a].get(i * 6 + a, j * 6 + b);
                 }
             }
             worst = worst.max((s / 36.0 - adaptive.get(i, j)).abs());
@@ -686,23 +698,6 @@ fn shipped_renders_are_reproduced() {
                 "{name}: {x:?} vs {y:?}"
             );
         }
-    }
-}
-
-/// `Φ(t)`, the standard normal distribution function (W. J. Cody's erfc is not in std; the
-/// Abramowitz–Stegun 7.1.26 rational form is accurate to 1.5e-7, far below what is asserted).
-fn normal_cdf(t: f64) -> f64 {
-    let x = t.abs() / std::f64::consts::SQRT_2;
-    let k = 1.0 / (1.0 + 0.327_591_1 * x);
-    let poly = k
-        * (0.254_829_592
-            + k * (-0.284_496_736
-                + k * (1.421_413_741 + k * (-1.453_152_027 + k * 1.061_405_429))));
-    let erf = 1.0 - poly * (-x * x).exp();
-    if t >= 0.0 {
-        0.5 * (1.0 + erf)
-    } else {
-        0.5 * (1.0 - erf)
     }
 }
 
