@@ -250,7 +250,7 @@ pub(super) struct Shade {
     pub uv: Vector2<f64>,
     pub level: f64,
     pub contrast: f64,
-    pub shift: SMatrix<f64, 2, 4>,
+    pub shift: Matrix2<f64>,
 }
 
 impl Shade {
@@ -269,17 +269,18 @@ pub const SHADING_RADIUS: i32 = 2;
 /// Fewest fitted corners (the corner's own included) for a shading gradient.
 pub const SHADING_MIN_POINTS: usize = 5;
 
-/// The gradients (grey levels per px, image axes) of the fitted level and contrast at fitted corner
-/// `(r, c)`, `[∂m/∂x, ∂m/∂y, ∂|h|/∂x, ∂|h|/∂y]`: planes fitted by least squares to the corners
-/// within [`SHADING_RADIUS`] lattice steps. Vignetting and the light vary slowly across a board, and
-/// so do a print's levels; a corner window sees the slope, which its constant-level model does not
-/// (measured on renders with vignetting 0.3 at 1920×1080, noise-free: corner RMS below 75° 0.0044 px
-/// against 0.0021 px without vignetting). `None` with too few fits or a degenerate layout.
+/// The relative gradient (1/px, image axes) of the brightness at fitted corner `(r, c)`: planes
+/// fitted by least squares to the levels `m` and half-contrasts `|h|` of the corners within
+/// [`SHADING_RADIUS`] lattice steps, and the one scale `γ` that best explains both slopes (`∇m ≈
+/// m·γ`, `∇|h| ≈ |h|·γ`, see [`super::refine::Refined::shading_shift`]). Vignetting and the light
+/// vary slowly across a board; a corner window sees the slope, which its constant-level model does
+/// not (measured on renders with vignetting 0.3 at 1920×1080, noise-free: corner RMS below 75°
+/// 0.0044 px against 0.0021 px without vignetting). `None` with too few fits or a degenerate layout.
 pub(super) fn shading_gradient(
     shades: &BTreeMap<(i32, i32), Shade>,
     r: i32,
     c: i32,
-) -> Option<SVector<f64, 4>> {
+) -> Option<Vector2<f64>> {
     let centre = shades.get(&(r, c))?.uv;
     let mut ata = Matrix3::zeros();
     let mut atm = Vector3::zeros();
@@ -303,11 +304,15 @@ pub(super) fn shading_gradient(
     }
     let chol = ata.cholesky()?;
     let (m, h) = (chol.solve(&atm), chol.solve(&ath));
-    let g = SVector::<f64, 4>::new(m.y, m.z, h.y, h.z);
+    let scale = m.x * m.x + h.x * h.x;
+    if !(scale > 0.0) {
+        return None;
+    }
+    let g = (Vector2::new(m.y, m.z) * m.x + Vector2::new(h.y, h.z) * h.x) / scale;
     g.iter().all(|v| v.is_finite()).then_some(g)
 }
 
-/// The shading correction of fitted corner `(r, c)`: `shading_shift·g` ([`shading_gradient`]),
+/// The shading correction of fitted corner `(r, c)`: `shading_shift·γ` ([`shading_gradient`]),
 /// zero where no gradient can be measured.
 pub(super) fn shading_correction(
     shades: &BTreeMap<(i32, i32), Shade>,
