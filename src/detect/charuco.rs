@@ -58,8 +58,12 @@ pub const MIN_QUAD_FILL: f64 = 0.8;
 pub const MAX_BORDER_ERROR_RATE: f64 = 0.35;
 /// Smallest difference between the light and dark cells' mean (grey levels).
 pub const MIN_MARKER_CONTRAST: f64 = 10.0;
-/// Largest distance between the two markers' predictions of a corner, in squares.
-pub const MAX_PREDICTION_DISAGREEMENT: f64 = 0.1;
+/// Largest distance between the two markers' predictions of a corner, in squares. A marker
+/// decoded with another id of the face sits at least one square diagonal (√2 squares) from where
+/// that id belongs, so its prediction misses by about that much; a quarter of a square leaves
+/// room for a lens that bends a square's sides (the pycalib wide-angle photos, ~106°: the two
+/// predictions differ by 0.10–0.15 of a square at the frame's edges).
+pub const MAX_PREDICTION_DISAGREEMENT: f64 = 0.25;
 
 /// A decoded marker.
 #[derive(Debug, Clone, PartialEq)]
