@@ -2,6 +2,8 @@
 """OpenCV's ChArUco detector on images, for cubecal's tests (tests/detect_charuco.rs).
 
 Usage: charuco_opencv.py BOARDS.json IMAGE...
+       charuco_opencv.py --calibrate VIEWS.json
+
 
 BOARDS.json: {"boards": [{"name": ..., "dictionary": "DICT_5X5_250", "squares": [SX, SY],
 "square": S, "marker": M, "ids": [...]}, ...]} (one per ChArUco face, OpenCV's layout).
@@ -10,6 +12,11 @@ Prints one JSON object: {"cv2": version, "images": [{"path": ..., "markers": [[i
 own ids (OpenCV's default: two markers per corner), corners refined by cornerSubPix as
 CharucoDetector does. Works with OpenCV 4.6 (Debian bookworm: detectMarkers +
 interpolateCornersCharuco) and >= 4.7 (CharucoDetector).
+
+--calibrate: VIEWS.json {"image_size": [w, h], "rational": bool, "views": [{"xyz": [[x, y, z], ...],
+"uv": [[u, v], ...]}, ...]} (planar views) through cv2.calibrateCameraExtended (CALIB_RATIONAL_MODEL
+when "rational", k4…k6 held at 0 when "fix_k456"); prints {"cv2", "rms", "K": [fx, fy, cx, cy], "sigma": [σfx, σfy, σcx, σcy],
+"dist": [...]}.
 """
 import json
 import sys
@@ -50,7 +57,25 @@ def detect(gray, d, board):
     return cc, cids, mc, mids
 
 
+def calibrate(path):
+    spec = json.load(open(path))
+    obj = [np.array(v["xyz"], np.float32) for v in spec["views"]]
+    img = [np.array(v["uv"], np.float32) for v in spec["views"]]
+    flags = cv2.CALIB_RATIONAL_MODEL if spec.get("rational") else 0
+    if spec.get("fix_k456"):
+        flags |= cv2.CALIB_FIX_K4 | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6
+    rms, k, d, _, _, sd, _, _ = cv2.calibrateCameraExtended(
+        obj, img, tuple(spec["image_size"]), None, None, flags=flags
+    )
+    json.dump({"cv2": cv2.__version__, "rms": rms,
+               "K": [k[0, 0], k[1, 1], k[0, 2], k[1, 2]],
+               "sigma": [float(v) for v in sd.ravel()[:4]],
+               "dist": [float(v) for v in d.ravel()]}, sys.stdout)
+
+
 def main():
+    if sys.argv[1] == "--calibrate":
+        return calibrate(sys.argv[2])
     spec = json.load(open(sys.argv[1]))
     boards = [(b["name"], *make_board(b)) for b in spec["boards"]]
     out = {"cv2": cv2.__version__, "images": []}
