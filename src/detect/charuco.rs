@@ -89,28 +89,63 @@ pub struct CharucoDetection {
     pub markers: Vec<Marker>,
 }
 
+/// One row's horizontal sums over 3 px, clipped by the row's ends.
+fn row_sums3(row: &[u8], o3: &mut [u16]) {
+    let w = row.len();
+    let clipped = |x: usize| -> u16 {
+        row[x.saturating_sub(1)..(x + 2).min(w)]
+            .iter()
+            .map(|&v| u16::from(v))
+            .sum()
+    };
+    if w < 3 {
+        for x in 0..w {
+            o3[x] = clipped(x);
+        }
+        return;
+    }
+    for (o, t) in o3[1..w - 1].iter_mut().zip(row.windows(3)) {
+        *o = u16::from(t[0]) + u16::from(t[1]) + u16::from(t[2]);
+    }
+    o3[0] = clipped(0);
+    o3[w - 1] = clipped(w - 1);
+}
+
+/// One row's horizontal sums over the `2r + 1` px box, clipped by the row's ends; `pre` is
+/// scratch of `row.len() + 1`.
+fn row_sums_box(row: &[u8], r: usize, pre: &mut [u32], ob: &mut [u16]) {
+    let w = row.len();
+    for x in 0..w {
+        pre[x + 1] = pre[x] + u32::from(row[x]);
+    }
+    let clipped = |x: usize| (pre[(x + r + 1).min(w)] - pre[x.saturating_sub(r)]) as u16;
+    if w > 2 * r + 1 {
+        // Away from the ends the box needs no clipping (the common case, kept branch-free).
+        for x in (0..r).chain(w - r..w) {
+            ob[x] = clipped(x);
+        }
+        for (x, o) in ob.iter_mut().enumerate().take(w - r).skip(r) {
+            *o = (pre[x + r + 1] - pre[x - r]) as u16;
+        }
+    } else {
+        for x in 0..w {
+            ob[x] = clipped(x);
+        }
+    }
+}
+
 /// The dark pixels of the adaptive threshold, one byte per pixel (1 = dark): the 3 × 3 mean
 /// around a pixel at least [`THRESHOLD_OFFSET`] below the mean of the [`BOX_PX`] box around it
-/// (both windows clipped by the frame). Separable running sums, integers throughout.
+/// (both windows clipped by the frame). Separable running sums in integers; the rows' horizontal
+/// sums are kept only while the windows need them (rings of 3 and [`BOX_PX`] rows).
 fn threshold(img: &GrayImage) -> Vec<u8> {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let src = img.as_raw();
     let r = BOX_PX / 2;
-    // Per row: horizontal sums over 3 px and over the box.
-    let mut h3 = vec![0u16; w * h];
-    let mut hb = vec![0u16; w * h];
+    let nb_ring = 2 * r + 1;
+    let mut h3 = vec![0u16; 3 * w];
+    let mut hb = vec![0u16; nb_ring * w];
     let mut pre = vec![0u32; w + 1];
-    for y in 0..h {
-        let row = &src[y * w..(y + 1) * w];
-        for x in 0..w {
-            pre[x + 1] = pre[x] + u32::from(row[x]);
-        }
-        let (o3, ob) = (&mut h3[y * w..(y + 1) * w], &mut hb[y * w..(y + 1) * w]);
-        for x in 0..w {
-            o3[x] = (pre[(x + 2).min(w)] - pre[x.saturating_sub(1)]) as u16;
-            ob[x] = (pre[(x + r + 1).min(w)] - pre[x.saturating_sub(r)]) as u16;
-        }
-    }
     // Pixels per window column span.
     let n3x: Vec<i32> = (0..w)
         .map(|x| ((x + 2).min(w) - x.saturating_sub(1)) as i32)
@@ -121,28 +156,39 @@ fn threshold(img: &GrayImage) -> Vec<u8> {
     let mut dark = vec![0u8; w * h];
     let mut col = vec![0i32; w];
     let mut s3 = vec![0i32; w];
-    // The box's column sums over rows [lo, hi).
+    // Rows whose sums are in the rings: 3-px sums of rows [0, next3), box sums of rows [lo, hi).
+    let mut next3 = 0usize;
     let (mut lo, mut hi) = (0usize, 0usize);
     for y in 0..h {
         let (want_lo, want_hi) = (y.saturating_sub(r), (y + r + 1).min(h));
+        // Leaving rows first: the entering row takes the ring slot of the row `2r + 1` above it.
+        while lo < want_lo {
+            for (c, &v) in col.iter_mut().zip(&hb[(lo % nb_ring) * w..][..w]) {
+                *c -= i32::from(v);
+            }
+            lo += 1;
+        }
         while hi < want_hi {
-            for (c, &v) in col.iter_mut().zip(&hb[hi * w..(hi + 1) * w]) {
+            let ob = &mut hb[(hi % nb_ring) * w..][..w];
+            row_sums_box(&src[hi * w..(hi + 1) * w], r, &mut pre, ob);
+            for (c, &v) in col.iter_mut().zip(ob.iter()) {
                 *c += i32::from(v);
             }
             hi += 1;
         }
-        while lo < want_lo {
-            for (c, &v) in col.iter_mut().zip(&hb[lo * w..(lo + 1) * w]) {
-                *c -= i32::from(v);
-            }
-            lo += 1;
+        while next3 < (y + 2).min(h) {
+            row_sums3(
+                &src[next3 * w..(next3 + 1) * w],
+                &mut h3[(next3 % 3) * w..][..w],
+            );
+            next3 += 1;
         }
         let nby = (hi - lo) as i32;
         let (a, b) = (y.saturating_sub(1), (y + 2).min(h));
         let n3y = (b - a) as i32;
         s3.fill(0);
         for yy in a..b {
-            for (t, &v) in s3.iter_mut().zip(&h3[yy * w..(yy + 1) * w]) {
+            for (t, &v) in s3.iter_mut().zip(&h3[(yy % 3) * w..][..w]) {
                 *t += i32::from(v);
             }
         }
