@@ -2,15 +2,17 @@
 //! beside it and fitted by the checkerboard corners' sub-pixel refinement ([`super::refine`]).
 //!
 //! ## Method
-//! 1. **Dark regions.** A pixel is dark when it is [`THRESHOLD_OFFSET`] grey levels below the mean of
-//!    the `w × w` box around it (`w` = [`box_size`], from an integral image), as OpenCV's adaptive
-//!    threshold. Dark pixels are grouped into 4-connected regions; a marker's black border is one
-//!    region, whatever its bits.
+//! 1. **Dark regions.** A pixel is dark when the mean of the 3 × 3 pixels around it is
+//!    [`THRESHOLD_OFFSET`] grey levels below the mean of the [`BOX_PX`]-wide box around it (OpenCV's
+//!    adaptive threshold compares the pixel itself, with several boxes; the 3 × 3 mean keeps a
+//!    noisy frame's one-cell marker borders whole with one small box). Dark pixels are grouped
+//!    into 4-connected regions; a marker's black border is one region, whatever its bits.
 //! 2. **Quadrilaterals.** Each region of plausible size is reduced to the convex hull of its pixels
 //!    (their outer pixel edges) and the hull to the largest quadrilateral on its vertices; a region
 //!    whose hull the quadrilateral does not fill to [`MIN_QUAD_FILL`] is no marker.
-//! 3. **Bits.** Through the homography of the quadrilateral, every cell of an `(n + 2)²` grid is
-//!    sampled (the mean of 3 × 3 bilinear samples in its middle half) for each marker size `n` the
+//! 3. **Bits.** The quadrilateral's sides are first fitted to sub-pixel (the outline as thresholded
+//!    can miss a blurred corner by a good part of a cell). Through the homography of the
+//!    quadrilateral, every cell of an `(n + 2)²` grid is sampled (the mean of 3 × 3 bilinear samples in its middle half) for each marker size `n` the
 //!    rig uses; the cells split into dark and light by two-means. The border cells must be dark (at
 //!    most [`MAX_BORDER_ERROR_RATE`] of them light, OpenCV's default); the data bits, in each of the
 //!    four rotations, are matched against every marker of the dictionary by Hamming distance, and a
@@ -38,12 +40,16 @@ use super::refine;
 use crate::rig::charuco::{Charuco, Dictionary, rotate_code};
 use crate::rig::{Face, Rig};
 
-/// How far below the local mean a pixel must be to be dark (grey levels; OpenCV's default 7).
-pub const THRESHOLD_OFFSET: i32 = 7;
-/// The threshold's box is this fraction of the frame's shorter side (at least [`MIN_BOX`] px).
-pub const BOX_FRACTION: f64 = 0.03;
-/// Smallest box of the adaptive threshold, px.
-pub const MIN_BOX: usize = 15;
+/// How far the 3 × 3 mean around a pixel must be below the mean of the [`BOX_PX`] box around it
+/// for the pixel to be dark (grey levels). OpenCV compares the pixel itself with 7; the 3 × 3 mean
+/// has a third of the pixel's noise, so 4 asks more of the noise (2.4 σ of it instead of 1.4 σ)
+/// while seeing low-contrast markers that 7 misses.
+pub const THRESHOLD_OFFSET: i32 = 4;
+/// Side of the adaptive threshold's box, px: about two cells of the smallest markers read
+/// ([`MIN_CELL_PX`] × 7 cells = 10 px), so that a marker's one-cell black border stays darker
+/// than the mean around it even where light bits touch it. Larger markers keep a dark outline
+/// along their border's outer edge, which is all the outline needs.
+pub const BOX_PX: usize = 15;
 /// Smallest side of a marker's quadrilateral, px per cell of the `(n + 2)²` grid.
 pub const MIN_CELL_PX: f64 = 1.5;
 /// Smallest ratio of the quadrilateral's area to its region's hull.
@@ -52,8 +58,12 @@ pub const MIN_QUAD_FILL: f64 = 0.8;
 pub const MAX_BORDER_ERROR_RATE: f64 = 0.35;
 /// Smallest difference between the light and dark cells' mean (grey levels).
 pub const MIN_MARKER_CONTRAST: f64 = 10.0;
-/// Largest distance between the two markers' predictions of a corner, in squares.
-pub const MAX_PREDICTION_DISAGREEMENT: f64 = 0.1;
+/// Largest distance between the two markers' predictions of a corner, in squares. A marker
+/// decoded with another id of the face sits at least one square diagonal (√2 squares) from where
+/// that id belongs, so its prediction misses by about that much; a quarter of a square leaves
+/// room for a lens that bends a square's sides (the pycalib wide-angle photos, ~106°: the two
+/// predictions differ by 0.10–0.15 of a square at the frame's edges).
+pub const MAX_PREDICTION_DISAGREEMENT: f64 = 0.25;
 
 /// A decoded marker.
 #[derive(Debug, Clone, PartialEq)]
@@ -79,36 +89,118 @@ pub struct CharucoDetection {
     pub markers: Vec<Marker>,
 }
 
-/// The threshold's box size for a frame (odd).
-pub fn box_size(width: u32, height: u32) -> usize {
-    let b = (BOX_FRACTION * f64::from(width.min(height))).round() as usize;
-    b.max(MIN_BOX) | 1
+/// One row's horizontal sums over 3 px, clipped by the row's ends.
+fn row_sums3(row: &[u8], o3: &mut [u16]) {
+    let w = row.len();
+    let clipped = |x: usize| -> u16 {
+        row[x.saturating_sub(1)..(x + 2).min(w)]
+            .iter()
+            .map(|&v| u16::from(v))
+            .sum()
+    };
+    if w < 3 {
+        for x in 0..w {
+            o3[x] = clipped(x);
+        }
+        return;
+    }
+    for (o, t) in o3[1..w - 1].iter_mut().zip(row.windows(3)) {
+        *o = u16::from(t[0]) + u16::from(t[1]) + u16::from(t[2]);
+    }
+    o3[0] = clipped(0);
+    o3[w - 1] = clipped(w - 1);
 }
 
-/// The dark pixels of the adaptive threshold, one byte per pixel (1 = dark).
+/// One row's horizontal sums over the `2r + 1` px box, clipped by the row's ends; `pre` is
+/// scratch of `row.len() + 1`.
+fn row_sums_box(row: &[u8], r: usize, pre: &mut [u32], ob: &mut [u16]) {
+    let w = row.len();
+    for x in 0..w {
+        pre[x + 1] = pre[x] + u32::from(row[x]);
+    }
+    let clipped = |x: usize| (pre[(x + r + 1).min(w)] - pre[x.saturating_sub(r)]) as u16;
+    if w > 2 * r + 1 {
+        // Away from the ends the box needs no clipping (the common case, kept branch-free).
+        for x in (0..r).chain(w - r..w) {
+            ob[x] = clipped(x);
+        }
+        for (x, o) in ob.iter_mut().enumerate().take(w - r).skip(r) {
+            *o = (pre[x + r + 1] - pre[x - r]) as u16;
+        }
+    } else {
+        for x in 0..w {
+            ob[x] = clipped(x);
+        }
+    }
+}
+
+/// The dark pixels of the adaptive threshold, one byte per pixel (1 = dark): the 3 × 3 mean
+/// around a pixel at least [`THRESHOLD_OFFSET`] below the mean of the [`BOX_PX`] box around it
+/// (both windows clipped by the frame). Separable running sums in integers; the rows' horizontal
+/// sums are kept only while the windows need them (rings of 3 and [`BOX_PX`] rows).
 fn threshold(img: &GrayImage) -> Vec<u8> {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let src = img.as_raw();
-    let mut integral = vec![0u32; (w + 1) * (h + 1)];
-    for y in 0..h {
-        let mut row = 0u32;
-        for x in 0..w {
-            row += u32::from(src[y * w + x]);
-            integral[(y + 1) * (w + 1) + x + 1] = integral[y * (w + 1) + x + 1] + row;
-        }
-    }
-    let r = box_size(img.width(), img.height()) / 2;
+    let r = BOX_PX / 2;
+    let nb_ring = 2 * r + 1;
+    let mut h3 = vec![0u16; 3 * w];
+    let mut hb = vec![0u16; nb_ring * w];
+    let mut pre = vec![0u32; w + 1];
+    // Pixels per window column span.
+    let n3x: Vec<i32> = (0..w)
+        .map(|x| ((x + 2).min(w) - x.saturating_sub(1)) as i32)
+        .collect();
+    let nbx: Vec<i32> = (0..w)
+        .map(|x| ((x + r + 1).min(w) - x.saturating_sub(r)) as i32)
+        .collect();
     let mut dark = vec![0u8; w * h];
+    let mut col = vec![0i32; w];
+    let mut s3 = vec![0i32; w];
+    // Rows whose sums are in the rings: 3-px sums of rows [0, next3), box sums of rows [lo, hi).
+    let mut next3 = 0usize;
+    let (mut lo, mut hi) = (0usize, 0usize);
     for y in 0..h {
-        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
-        for x in 0..w {
-            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-            let sum = integral[y1 * (w + 1) + x1] + integral[y0 * (w + 1) + x0]
-                - integral[y0 * (w + 1) + x1]
-                - integral[y1 * (w + 1) + x0];
-            let n = ((y1 - y0) * (x1 - x0)) as i32;
-            let v = i32::from(src[y * w + x]);
-            dark[y * w + x] = u8::from(v * n < sum as i32 - THRESHOLD_OFFSET * n);
+        let (want_lo, want_hi) = (y.saturating_sub(r), (y + r + 1).min(h));
+        // Leaving rows first: the entering row takes the ring slot of the row `2r + 1` above it.
+        while lo < want_lo {
+            for (c, &v) in col.iter_mut().zip(&hb[(lo % nb_ring) * w..][..w]) {
+                *c -= i32::from(v);
+            }
+            lo += 1;
+        }
+        while hi < want_hi {
+            let ob = &mut hb[(hi % nb_ring) * w..][..w];
+            row_sums_box(&src[hi * w..(hi + 1) * w], r, &mut pre, ob);
+            for (c, &v) in col.iter_mut().zip(ob.iter()) {
+                *c += i32::from(v);
+            }
+            hi += 1;
+        }
+        while next3 < (y + 2).min(h) {
+            row_sums3(
+                &src[next3 * w..(next3 + 1) * w],
+                &mut h3[(next3 % 3) * w..][..w],
+            );
+            next3 += 1;
+        }
+        let nby = (hi - lo) as i32;
+        let (a, b) = (y.saturating_sub(1), (y + 2).min(h));
+        let n3y = (b - a) as i32;
+        s3.fill(0);
+        for yy in a..b {
+            for (t, &v) in s3.iter_mut().zip(&h3[(yy % 3) * w..][..w]) {
+                *t += i32::from(v);
+            }
+        }
+        let out = &mut dark[y * w..(y + 1) * w];
+        for ((o, (&t, &c)), (&nx3, &nxb)) in out
+            .iter_mut()
+            .zip(s3.iter().zip(&col))
+            .zip(n3x.iter().zip(&nbx))
+        {
+            let (n3, nb) = (nx3 * n3y, nxb * nby);
+            // t / n3 < c / nb − offset, in integers.
+            *o = u8::from(t * nb < n3 * (c - THRESHOLD_OFFSET * nb));
         }
     }
     dark
@@ -118,20 +210,20 @@ fn threshold(img: &GrayImage) -> Vec<u8> {
 struct Region {
     rows: Vec<(u32, u32, u32)>,
     pixels: usize,
+    /// `[x0, y0, x1, y1]`, inclusive.
+    bbox: [u32; 4],
 }
 
-/// The dark regions of plausible size for markers at least `min_side` px wide and at most
-/// `max_side` px.
-fn regions(dark: &mut [u8], w: usize, h: usize, min_side: f64, max_side: f64) -> Vec<Region> {
+/// The dark regions at least `min_side` px wide or high.
+fn regions(dark: &mut [u8], w: usize, h: usize, min_side: f64) -> Vec<Region> {
     let mut out = Vec::new();
     let mut stack: Vec<u32> = Vec::new();
     // Per image row, the region's leftmost and rightmost pixel (reset after each region).
     let mut row_min = vec![u32::MAX; h];
     let mut row_max = vec![0u32; h];
-    for start in 0..w * h {
-        if dark[start] != 1 {
-            continue;
-        }
+    let mut start = 0;
+    while let Some(k) = dark[start..].iter().position(|&d| d == 1) {
+        start += k;
         dark[start] = 2;
         stack.push(start as u32);
         let mut pixels = 0usize;
@@ -163,21 +255,22 @@ fn regions(dark: &mut [u8], w: usize, h: usize, min_side: f64, max_side: f64) ->
                 stack.push((p + w) as u32);
             }
         }
+        if ((x1 - x0 + 1).max(y1 - y0 + 1) as f64) < min_side {
+            row_min[y0..=y1].fill(u32::MAX);
+            row_max[y0..=y1].fill(0);
+            continue;
+        }
         let rows: Vec<(u32, u32, u32)> = (y0..=y1)
             .filter(|&y| row_min[y] != u32::MAX)
             .map(|y| (y as u32, row_min[y], row_max[y]))
             .collect();
         row_min[y0..=y1].fill(u32::MAX);
         row_max[y0..=y1].fill(0);
-        let (bw, bh) = ((x1 - x0 + 1) as f64, (y1 - y0 + 1) as f64);
-        if bw.max(bh) < min_side || bw.max(bh) > max_side || (pixels as f64) < min_side * 2.0 {
-            continue;
-        }
-        // Touching the frame border: a marker cut by the frame cannot be read.
-        if x0 == 0 || y0 == 0 || x1 + 1 == w || y1 + 1 == h {
-            continue;
-        }
-        out.push(Region { rows, pixels });
+        out.push(Region {
+            rows,
+            pixels,
+            bbox: [x0 as u32, y0 as u32, x1 as u32, y1 as u32],
+        });
     }
     out
 }
@@ -335,17 +428,42 @@ fn bilinear(img: &GrayImage, p: Vector2<f64>) -> Option<f64> {
     )
 }
 
-/// Read and decode a quadrilateral (image corners clockwise as seen) as a marker of `dict`.
-fn decode(img: &GrayImage, quad: &[Vector2<f64>; 4], dict: Dictionary) -> Option<Marker> {
-    let n = dict.bits;
-    let cells = n + 2;
+/// Why a quadrilateral decoded to no marker.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DecodeMiss {
+    /// Its cells reach outside the frame or its homography is degenerate.
+    Geometry,
+    /// Light and dark cells too alike ([`MIN_MARKER_CONTRAST`]).
+    Contrast,
+    /// This many border cells read light (more than [`MAX_BORDER_ERROR_RATE`] allows).
+    Border(usize),
+    /// The nearest code of the dictionary is this many bits away (more than it corrects).
+    Distance(u32),
+}
+
+/// A marker's cells as read: the mean grey level of each cell of the `(n + 2)²` grid (row-major),
+/// and their two-means split (threshold `t`, the dark and light cells' means).
+struct Cells {
+    values: Vec<f64>,
+    t: f64,
+    m_dark: f64,
+    m_light: f64,
+}
+
+/// Read the `cells × cells` grid of a quadrilateral: each cell the mean of 3 × 3 bilinear samples
+/// in its middle half; the cells split into dark and light by two-means.
+fn read_cells(
+    img: &GrayImage,
+    quad: &[Vector2<f64>; 4],
+    cells: usize,
+) -> Result<Cells, DecodeMiss> {
     let unit = [
         Vector2::new(0.0, 0.0),
         Vector2::new(1.0, 0.0),
         Vector2::new(1.0, 1.0),
         Vector2::new(0.0, 1.0),
     ];
-    let h = homography(&unit, quad)?;
+    let h = homography(&unit, quad).ok_or(DecodeMiss::Geometry)?;
     let mut values = vec![0.0; cells * cells];
     for r in 0..cells {
         for c in 0..cells {
@@ -354,13 +472,14 @@ fn decode(img: &GrayImage, quad: &[Vector2<f64>; 4], dict: Dictionary) -> Option
                 for dx in [-0.25, 0.0, 0.25] {
                     let u = (c as f64 + 0.5 + dx) / cells as f64;
                     let v = (r as f64 + 0.5 + dy) / cells as f64;
-                    sum += bilinear(img, apply(&h, Vector2::new(u, v))?)?;
+                    sum += apply(&h, Vector2::new(u, v))
+                        .and_then(|p| bilinear(img, p))
+                        .ok_or(DecodeMiss::Geometry)?;
                 }
             }
             values[r * cells + c] = sum / 9.0;
         }
     }
-    // Two-means split of the cells.
     let (lo, hi) = values
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
@@ -380,14 +499,53 @@ fn decode(img: &GrayImage, quad: &[Vector2<f64>; 4], dict: Dictionary) -> Option
             }
         }
         if nd == 0 || nl == 0 {
-            return None;
+            return Err(DecodeMiss::Contrast);
         }
         (m_dark, m_light) = (sd / nd as f64, sl / nl as f64);
         t = (m_dark + m_light) / 2.0;
     }
     if m_light - m_dark < MIN_MARKER_CONTRAST {
-        return None;
+        return Err(DecodeMiss::Contrast);
     }
+    Ok(Cells {
+        values,
+        t,
+        m_dark,
+        m_light,
+    })
+}
+
+/// Read and decode a quadrilateral (image corners clockwise as seen) as a marker of `dict`; its
+/// corners are refined to sub-pixel ([`Marker::corners`]).
+pub fn decode(
+    img: &GrayImage,
+    quad: &[Vector2<f64>; 4],
+    dict: Dictionary,
+) -> Result<Marker, DecodeMiss> {
+    let n = dict.bits;
+    let cells = n + 2;
+    // The outline as thresholded can be off by a good part of a cell at a blurred, noisy corner:
+    // its sides are fitted to sub-pixel first, with the level between the cells' two means as
+    // first read, and the cells read again through the fitted outline.
+    let first = read_cells(img, quad, cells)?;
+    let cell_px = (0..4)
+        .map(|k| (quad[(k + 1) % 4] - quad[k]).norm())
+        .fold(f64::INFINITY, f64::min)
+        / cells as f64;
+    let level = (first.m_dark + first.m_light) / 2.0;
+    let (quad, read) = match refine_quad(img, quad, level, cell_px) {
+        Some(q) => match read_cells(img, &q, cells) {
+            Ok(r) => (q, r),
+            Err(_) => (*quad, first),
+        },
+        None => (*quad, first),
+    };
+    let Cells {
+        values,
+        t,
+        m_dark,
+        m_light,
+    } = read;
     let light = |r: usize, c: usize| values[r * cells + c] >= t;
     let border_light = (0..cells)
         .flat_map(|r| (0..cells).map(move |c| (r, c)))
@@ -395,7 +553,7 @@ fn decode(img: &GrayImage, quad: &[Vector2<f64>; 4], dict: Dictionary) -> Option
         .filter(|&(r, c)| light(r, c))
         .count();
     if border_light as f64 > MAX_BORDER_ERROR_RATE * (4 * (cells - 1)) as f64 {
-        return None;
+        return Err(DecodeMiss::Border(border_light));
     }
     let mut read = 0u64;
     for r in 0..n {
@@ -415,13 +573,26 @@ fn decode(img: &GrayImage, quad: &[Vector2<f64>; 4], dict: Dictionary) -> Option
             rotated = rotate_code(rotated, n);
         }
     }
-    let (distance, id, rot) = best?;
-    let cell_px = (0..4)
-        .map(|k| (quad[(k + 1) % 4] - quad[k]).norm())
-        .fold(f64::INFINITY, f64::min)
-        / cells as f64;
-    let quad = refine_quad(img, quad, (m_dark + m_light) / 2.0, cell_px).unwrap_or(*quad);
-    Some(Marker {
+    let (distance, id, rot) = match best {
+        Some(b) => b,
+        None => {
+            let nearest = dict
+                .codes()
+                .iter()
+                .flat_map(|&code| {
+                    let mut r = code;
+                    (0..4).map(move |_| {
+                        let d = (r ^ read).count_ones();
+                        r = rotate_code(r, n);
+                        d
+                    })
+                })
+                .min()
+                .unwrap_or(u32::MAX);
+            return Err(DecodeMiss::Distance(nearest));
+        }
+    };
+    Ok(Marker {
         bits: n,
         id,
         corners: [0, 1, 2, 3].map(|k| quad[(k + rot) % 4]),
@@ -518,8 +689,46 @@ fn refine_quad(
     Some(out)
 }
 
+/// What became of one dark region examined as a marker candidate ([`marker_candidates`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum CandidateOutcome {
+    /// Smaller or larger than a marker can be.
+    Size,
+    /// Touching the frame's border.
+    FrameBorder,
+    /// Its outline is no quadrilateral (the quadrilateral fills too little of its hull).
+    NotQuad,
+    /// A quadrilateral whose bits decode to no marker of the dictionaries (why, for the last
+    /// dictionary tried).
+    NotDecoded(DecodeMiss),
+    Decoded(Marker),
+}
+
+/// One dark region examined as a marker: its bounding box `[x0, y0, x1, y1]` (pixels, inclusive),
+/// pixel count and outcome.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Candidate {
+    pub bbox: [u32; 4],
+    /// The quadrilateral read, when its outline is one.
+    pub quad: Option<[Vector2<f64>; 4]>,
+    pub pixels: usize,
+    pub outcome: CandidateOutcome,
+}
+
 /// Find and decode the markers of every size in `dicts` (one dictionary per marker size).
 pub fn find_markers(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Marker> {
+    marker_candidates(img, dicts)
+        .into_iter()
+        .filter_map(|c| match c.outcome {
+            CandidateOutcome::Decoded(m) => Some(m),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Every dark region of at least a marker's minimum size and what became of it (for measuring
+/// which markers are missed and why; [`find_markers`] keeps the decoded ones).
+pub fn marker_candidates(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Candidate> {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let Some(min_bits) = dicts.iter().map(|d| d.bits).min() else {
         return Vec::new();
@@ -528,39 +737,67 @@ pub fn find_markers(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Marker> {
     let max_side = w.min(h) as f64 / 2.0;
     let mut dark = threshold(img);
     let mut out = Vec::new();
-    for region in regions(&mut dark, w, h, min_side, max_side) {
-        let mut pts = Vec::with_capacity(region.rows.len() * 4);
-        for &(y, x0, x1) in &region.rows {
-            let (y, x0, x1) = (f64::from(y), f64::from(x0), f64::from(x1));
-            pts.extend([
-                Vector2::new(x0 - 0.5, y - 0.5),
-                Vector2::new(x0 - 0.5, y + 0.5),
-                Vector2::new(x1 + 0.5, y - 0.5),
-                Vector2::new(x1 + 0.5, y + 0.5),
-            ]);
-        }
-        let hl = simplify(hull(pts), 0.7);
-        let Some(quad) = largest_quad(&hl) else {
-            continue;
-        };
-        let (ha, qa) = (polygon_area(&hl).abs(), polygon_area(&quad).abs());
-        if qa < MIN_QUAD_FILL * ha || (region.pixels as f64) < 0.3 * qa {
-            continue;
-        }
-        let sides = (0..4).map(|k| (quad[(k + 1) % 4] - quad[k]).norm());
-        if sides.fold(f64::INFINITY, f64::min) < min_side {
-            continue;
-        }
-        // Hull order is counter-clockwise in a y-up frame: clockwise as seen in the image (y down).
-        // Start from the top-left-most corner (any start works; decoding finds the rotation).
-        for &dict in dicts {
-            if let Some(m) = decode(img, &quad, dict) {
-                out.push(m);
-                break;
-            }
-        }
+    for region in regions(&mut dark, w, h, min_side) {
+        let (quad, outcome) = examine(img, &region, dicts, (w, h), min_side, max_side);
+        out.push(Candidate {
+            bbox: region.bbox,
+            quad,
+            pixels: region.pixels,
+            outcome,
+        });
     }
     out
+}
+
+fn examine(
+    img: &GrayImage,
+    region: &Region,
+    dicts: &[Dictionary],
+    (w, h): (usize, usize),
+    min_side: f64,
+    max_side: f64,
+) -> (Option<[Vector2<f64>; 4]>, CandidateOutcome) {
+    let [x0, y0, x1, y1] = region.bbox;
+    let (bw, bh) = (f64::from(x1 - x0 + 1), f64::from(y1 - y0 + 1));
+    if bw.max(bh) < min_side || bw.max(bh) > max_side || (region.pixels as f64) < min_side * 2.0 {
+        return (None, CandidateOutcome::Size);
+    }
+    // Touching the frame border: a marker cut by the frame cannot be read.
+    if x0 == 0 || y0 == 0 || x1 as usize + 1 == w || y1 as usize + 1 == h {
+        return (None, CandidateOutcome::FrameBorder);
+    }
+    let mut pts = Vec::with_capacity(region.rows.len() * 4);
+    for &(y, x0, x1) in &region.rows {
+        let (y, x0, x1) = (f64::from(y), f64::from(x0), f64::from(x1));
+        pts.extend([
+            Vector2::new(x0 - 0.5, y - 0.5),
+            Vector2::new(x0 - 0.5, y + 0.5),
+            Vector2::new(x1 + 0.5, y - 0.5),
+            Vector2::new(x1 + 0.5, y + 0.5),
+        ]);
+    }
+    let hl = simplify(hull(pts), 0.7);
+    let Some(quad) = largest_quad(&hl) else {
+        return (None, CandidateOutcome::NotQuad);
+    };
+    let (ha, qa) = (polygon_area(&hl).abs(), polygon_area(&quad).abs());
+    if qa < MIN_QUAD_FILL * ha || (region.pixels as f64) < 0.3 * qa {
+        return (None, CandidateOutcome::NotQuad);
+    }
+    let sides = (0..4).map(|k| (quad[(k + 1) % 4] - quad[k]).norm());
+    if sides.fold(f64::INFINITY, f64::min) < min_side {
+        return (Some(quad), CandidateOutcome::Size);
+    }
+    // Hull order is counter-clockwise in a y-up frame: clockwise as seen in the image (y down).
+    // Any start works; decoding finds the rotation.
+    let mut miss = DecodeMiss::Geometry;
+    for &dict in dicts {
+        match decode(img, &quad, dict) {
+            Ok(m) => return (Some(m.corners), CandidateOutcome::Decoded(m)),
+            Err(e) => miss = e,
+        }
+    }
+    (Some(quad), CandidateOutcome::NotDecoded(miss))
 }
 
 /// OpenCV board coordinates (mm, x right, y down from the board's top-left square corner) of a

@@ -1,0 +1,316 @@
+//! ChArUco faces on real photos (issue 33, acceptance 3), against OpenCV's ChArUco detector
+//! (`tests/peers/charuco_opencv.py`) on the same photos:
+//!
+//! - `../shared/datasets/pycalib_charuco_wide`: a 17 × 8 corner board on a monitor through a ~106°
+//!   lens (`fixtures/rigs/pycalib_charuco_wide.toml`);
+//! - `../shared/datasets/pycamset_charuco_cube_cam0`: pyCamSet's 40 mm ChArUco cube, faces cut by the
+//!   frame and at grazing angles (`fixtures/rigs/pycamset_ccube.toml`, derived from pyCamSet's
+//!   definition by `scripts/pycamset_ccube_rig.py`).
+//!
+//! A label differs when OpenCV's corner of a face and id lies nearer to another of cubecal's corners
+//! than to the one cubecal gives that face and id; otherwise the two only differ in accuracy (on the
+//! cube's grazing faces OpenCV's corners lie up to 4.7 px from cubecal's, and fit the face's
+//! homography worse: median RMS 0.68 px against cubecal's 0.54, cubecal better on 38 of 41 faces). The photos are missing → the test fails. The OpenCV parts need python3 with cv2.aruco;
+//! without it they are skipped with a message, unless `CUBECAL_REQUIRE_TOOLS=1`.
+#![allow(clippy::print_stderr)]
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use cubecal::calib::{self, Correspondence, SolveOptions, View};
+use cubecal::camera::DistortionModel;
+use cubecal::detect::{CornerFinder, detect};
+use cubecal::rig::Rig;
+use cubecal::rig::charuco::opencv_corner_id;
+use nalgebra::{Vector2, Vector3};
+
+fn manifest() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn python_with_aruco() -> Option<String> {
+    let found = [
+        std::env::var("CUBECAL_PYTHON").ok(),
+        Some("/usr/bin/python3".to_string()),
+        Some("python3".to_string()),
+    ]
+    .into_iter()
+    .flatten()
+    .find(|py| {
+        Command::new(py)
+            .args(["-c", "import cv2; cv2.aruco.getPredefinedDictionary"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success())
+    });
+    if found.is_none() {
+        assert!(
+            std::env::var("CUBECAL_REQUIRE_TOOLS").map_or(true, |v| v != "1"),
+            "CUBECAL_REQUIRE_TOOLS=1 but no python3 with cv2.aruco"
+        );
+        eprintln!("skipped: no python3 with cv2.aruco (run deploy/install-test-tools.sh)");
+    }
+    found
+}
+
+fn photos(set: &str) -> Vec<PathBuf> {
+    let dir = manifest()
+        .join("../shared/datasets")
+        .join(set)
+        .join("images");
+    let mut out: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap_or_else(|e| panic!("{}: {e} (the dataset is required)", dir.display()))
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "jpg"))
+        .collect();
+    out.sort();
+    assert!(!out.is_empty(), "{}: no photos", dir.display());
+    out
+}
+
+/// Per photo: (face index, OpenCV corner id) → image position.
+type Labels = Vec<HashMap<(usize, usize), Vector2<f64>>>;
+
+fn ours(rig: &Rig, photos: &[PathBuf]) -> Labels {
+    let mut finder = CornerFinder::new().unwrap_or_else(|e| panic!("{e}"));
+    photos
+        .iter()
+        .map(|p| {
+            let img = image::open(p)
+                .unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+                .to_luma8();
+            let det = detect(&mut finder, &img, rig).unwrap_or_else(|e| panic!("{e}"));
+            let mut m = HashMap::new();
+            for f in &det.faces {
+                let face = &rig.faces[f.face];
+                for c in &f.corners {
+                    m.insert(
+                        (f.face, opencv_corner_id(face.cols, face.rows, c.row, c.col)),
+                        c.uv,
+                    );
+                }
+            }
+            m
+        })
+        .collect()
+}
+
+fn opencv(py: &str, rig: &Rig, photos: &[PathBuf], dir: &Path) -> (String, Labels) {
+    let boards: Vec<serde_json::Value> = rig
+        .faces
+        .iter()
+        .filter_map(|f| {
+            let ch = f.charuco.as_ref()?;
+            Some(
+                serde_json::json!({"name": f.name, "dictionary": ch.dictionary.name(),
+                "squares": [f.cols + 1, f.rows + 1], "square": f.square_mm,
+                "marker": ch.marker_mm, "ids": ch.ids}),
+            )
+        })
+        .collect();
+    let spec = dir.join("boards.json");
+    std::fs::write(&spec, serde_json::json!({"boards": boards}).to_string())
+        .unwrap_or_else(|e| panic!("{e}"));
+    let out = Command::new(py)
+        .arg(manifest().join("tests/peers/charuco_opencv.py"))
+        .arg(&spec)
+        .args(photos)
+        .output()
+        .unwrap_or_else(|e| panic!("{py}: {e}"));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{e}"));
+    let labels = v["images"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(|im| {
+            let mut m = HashMap::new();
+            for (fi, face) in rig.faces.iter().enumerate() {
+                for c in im["boards"][&face.name].as_array().into_iter().flatten() {
+                    let id = c[0].as_u64().unwrap_or(u64::MAX) as usize;
+                    let uv = Vector2::new(
+                        c[1].as_f64().unwrap_or(f64::NAN),
+                        c[2].as_f64().unwrap_or(f64::NAN),
+                    );
+                    m.insert((fi, id), uv);
+                }
+            }
+            m
+        })
+        .collect();
+    (v["cv2"].as_str().unwrap_or("?").to_string(), labels)
+}
+
+/// (corners OpenCV labels, of those labelled by cubecal too, labels that differ, cubecal's extra).
+/// A label differs when the cubecal corner nearest to OpenCV's is not the one cubecal gives the
+/// same face and id.
+fn compare(ours: &Labels, cv: &Labels) -> (usize, usize, usize, usize) {
+    let (mut n_cv, mut both, mut differ, mut extra) = (0, 0, 0, 0);
+    for (o, c) in ours.iter().zip(cv) {
+        for (key, uv) in c {
+            n_cv += 1;
+            if let Some(mine) = o.get(key) {
+                both += 1;
+                let d = (mine - uv).norm();
+                if o.values().any(|other| (other - uv).norm() < d) {
+                    differ += 1;
+                }
+            }
+        }
+        extra += o.keys().filter(|k| !c.contains_key(k)).count();
+    }
+    (n_cv, both, differ, extra)
+}
+
+/// Acceptance 3, the wide-angle board: every corner OpenCV labels is labelled the same by cubecal
+/// (all but the few beside markers cubecal does not decode), and the calibration on the same corners
+/// (rational model) agrees with OpenCV's within 3σ.
+#[test]
+fn pycalib_wide_board_labels_and_calibration_agree_with_opencv() {
+    let (rig, _) = Rig::load(&manifest().join("fixtures/rigs/pycalib_charuco_wide.toml"))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let photos = photos("pycalib_charuco_wide");
+    let mine = ours(&rig, &photos);
+    let total: usize = mine.iter().map(HashMap::len).sum();
+    eprintln!("cubecal: {total} corners in {} photos", photos.len());
+    // 1211 measured (OpenCV 5.0's CharucoDetector labels 1220, 4.6 994).
+    assert!(total >= 1200, "only {total} corners");
+    let Some(py) = python_with_aruco() else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let (version, cv) = opencv(&py, &rig, &photos, tmp.path());
+    let (n_cv, both, differ, extra) = compare(&mine, &cv);
+    eprintln!(
+        "OpenCV {version}: {n_cv} corners; cubecal labels {both} of them, {differ} differently; {extra} more"
+    );
+    assert_eq!(differ, 0, "labels differ from OpenCV's");
+    // Measured: 981 of 4.6's 994, 1211 of 5.0's 1220 (the rest beside 3 markers cubecal does not
+    // decode in one photo).
+    assert!(
+        both as f64 >= 0.98 * n_cv as f64,
+        "cubecal labels only {both} of OpenCV's {n_cv} corners"
+    );
+
+    // Calibrations on the corners both label: cubecal's solve on cubecal's positions, OpenCV's
+    // calibrateCamera on OpenCV's.
+    let board = &rig.faces[0];
+    let xyz = |id: usize| -> Vector3<f64> {
+        let (x, y) = (id % board.cols, id / board.cols);
+        board.corner_xyz(board.rows - 1 - y, x)
+    };
+    let mut views = Vec::new();
+    let mut cv_views = Vec::new();
+    for (k, (o, c)) in mine.iter().zip(&cv).enumerate() {
+        let mut ids: Vec<usize> = c
+            .keys()
+            .filter(|key| o.contains_key(key))
+            .map(|key| key.1)
+            .collect();
+        ids.sort_unstable();
+        if ids.len() < 6 {
+            continue;
+        }
+        views.push(View {
+            name: format!("{k}"),
+            points: ids
+                .iter()
+                .map(|&id| Correspondence::new(xyz(id), o[&(0, id)]))
+                .collect(),
+        });
+        let p: Vec<[f64; 3]> = ids.iter().map(|&id| xyz(id).into()).collect();
+        let uv: Vec<[f64; 2]> = ids.iter().map(|&id| c[&(0, id)].into()).collect();
+        cv_views.push(serde_json::json!({"xyz": p, "uv": uv}));
+    }
+    // The rational model as the reference used; on OpenCV 4.6's corners (none near the frame's
+    // edges) cubecal finds k4…k6 undetermined and refuses, where OpenCV returns a value: then both
+    // hold k4, k5, k6 at 0.
+    let mut opts = SolveOptions {
+        model: DistortionModel::Brown8,
+        ..SolveOptions::default()
+    };
+    let cal = match calib::solve(&views, [1280, 720], &opts) {
+        Ok(cal) => cal,
+        Err(e) => {
+            eprintln!("brown8: {e}; again with k4, k5, k6 held at 0");
+            opts.fix.k4 = true;
+            opts.fix.k5 = true;
+            opts.fix.k6 = true;
+            calib::solve(&views, [1280, 720], &opts).unwrap_or_else(|e| panic!("{e}"))
+        }
+    };
+    let spec = tmp.path().join("views.json");
+    std::fs::write(
+        &spec,
+        serde_json::json!({"image_size": [1280, 720], "rational": true,
+            "fix_k456": opts.fix.k4, "views": cv_views})
+        .to_string(),
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    let out = Command::new(&py)
+        .arg(manifest().join("tests/peers/charuco_opencv.py"))
+        .arg("--calibrate")
+        .arg(&spec)
+        .output()
+        .unwrap_or_else(|e| panic!("{py}: {e}"));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let cvcal: serde_json::Value =
+        serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{e}"));
+    let cam = &cal.camera;
+    let ours4 = [cam.fx(), cam.fy(), cam.cx(), cam.cy()];
+    for (i, name) in ["fx", "fy", "cx", "cy"].iter().enumerate() {
+        let theirs = cvcal["K"][i].as_f64().unwrap_or(f64::NAN);
+        let sigma = cal.std_dev[i];
+        eprintln!(
+            "{name}: cubecal {:.3} ± {sigma:.3}, OpenCV {theirs:.3} ± {:.3} ({:.2} σ)",
+            ours4[i],
+            cvcal["sigma"][i].as_f64().unwrap_or(f64::NAN),
+            (ours4[i] - theirs).abs() / sigma
+        );
+        assert!(
+            (ours4[i] - theirs).abs() <= 3.0 * sigma,
+            "{name}: {:.3} vs OpenCV's {theirs:.3}, more than 3σ ({sigma:.3}) apart",
+            ours4[i]
+        );
+    }
+}
+
+/// Acceptance 3, the cube (part): no corner OpenCV labels is labelled differently by cubecal, and
+/// cubecal labels at least as many corners in all. (Not yet every one of OpenCV's: see the count
+/// printed.)
+#[test]
+fn pycamset_cube_labels_agree_with_opencv() {
+    let (rig, _) = Rig::load(&manifest().join("fixtures/rigs/pycamset_ccube.toml"))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let photos = photos("pycamset_charuco_cube_cam0");
+    let mine = ours(&rig, &photos);
+    let total: usize = mine.iter().map(HashMap::len).sum();
+    eprintln!("cubecal: {total} corners in {} photos", photos.len());
+    let Some(py) = python_with_aruco() else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let (version, cv) = opencv(&py, &rig, &photos, tmp.path());
+    let (n_cv, both, differ, extra) = compare(&mine, &cv);
+    eprintln!(
+        "OpenCV {version}: {n_cv} corners; cubecal labels {both} of them, {differ} differently; {extra} more"
+    );
+    assert_eq!(differ, 0, "labels differ from OpenCV's");
+    assert!(total >= n_cv, "{total} corners, OpenCV {n_cv}");
+    // Measured: 2097 of 4.6's 2186, 2117 of 5.0's 2197.
+    assert!(
+        both as f64 >= 0.95 * n_cv as f64,
+        "cubecal labels only {both} of OpenCV's {n_cv} corners"
+    );
+}
