@@ -25,9 +25,11 @@ use cubecal::turntable::{Degrees, Turntable, TurntableError};
 
 const CUBE: &str = include_str!("../fixtures/rigs/cube_outside.toml");
 
+/// The station config of `keys`, on a one-axis turntable unless they say otherwise: this file is the
+/// turntable-only station (the simulators' default tilt axis is `tests/station_plan.rs`'s).
 fn config(keys: &[(&str, &str)]) -> StationConfig {
     let mut t = toml::Table::new();
-    for (k, v) in keys {
+    for (k, v) in [("turntable.tilt", "false")].iter().chain(keys) {
         set_key(&mut t, k, v).unwrap();
     }
     StationConfig::from_table(t, "test").unwrap()
