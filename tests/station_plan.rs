@@ -14,12 +14,14 @@ use std::sync::atomic::AtomicBool;
 
 use cubecal::calib::{Correspondence, Fix, Loss, SolveOptions, View};
 use cubecal::camera::{Camera, DistortionModel};
+use cubecal::capture::synthetic::AngleCell;
 use cubecal::render::{RenderSettings, StageGeometry, default_view, ground_truth, stage_pose};
 use cubecal::rig::Rig;
 use cubecal::station::config::{StationConfig, set_key};
 use cubecal::station::event::Recorder;
 use cubecal::station::{Event, RunResult, RunSpec, hardware};
 use cubecal::turntable::manual::Operator;
+use cubecal::turntable::{Degrees, Turntable, TurntableError};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
@@ -64,8 +66,12 @@ fn config(extra: &[(&str, &str)]) -> StationConfig {
 }
 
 fn run(cfg: &StationConfig, operator: Option<Box<dyn Operator>>) -> (RunResult, Vec<Event>) {
+    let hw = hardware::open(cfg, &rig(), operator).unwrap();
+    run_hw(cfg, hw)
+}
+
+fn run_hw(cfg: &StationConfig, hw: hardware::Hardware) -> (RunResult, Vec<Event>) {
     let rig = rig();
-    let hw = hardware::open(cfg, &rig, operator).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let run_dir = dir.path().join("run");
     let spec = RunSpec {
@@ -153,12 +159,99 @@ fn planned_two_axis_run_covers_the_image_and_determines_k3_and_the_principal_poi
     assert!(r.views.iter().any(|v| v.tilt_deg.is_some_and(|t| t != 0.0)));
 }
 
+/// A manual stage whose operator forgets the tilt the first two times a pose after the third asks
+/// for one: the scene shows the cradle level while the prompt is confirmed; asked again, they tilt.
+/// The scene's angles are what the operator did, not what they confirmed.
+struct Forgetful {
+    inner: Box<dyn Turntable>,
+    angle: AngleCell,
+    tilt: AngleCell,
+    poses: usize,
+    forgot: usize,
+}
+
+impl Turntable for Forgetful {
+    fn describe(&mut self) -> Result<String, TurntableError> {
+        self.inner.describe()
+    }
+    fn home(&mut self) -> Result<Degrees, TurntableError> {
+        self.inner.home()
+    }
+    fn move_to(&mut self, t: Degrees) -> Result<Degrees, TurntableError> {
+        self.inner.move_to(t)
+    }
+    fn position(&mut self) -> Result<Degrees, TurntableError> {
+        self.inner.position()
+    }
+    fn stop(&mut self) -> Result<(), TurntableError> {
+        self.inner.stop()
+    }
+    fn resolution(&self) -> Degrees {
+        self.inner.resolution()
+    }
+    fn tilt_limits(&self) -> Option<(Degrees, Degrees)> {
+        self.inner.tilt_limits()
+    }
+    fn tilt_to(&mut self, t: Degrees) -> Result<Degrees, TurntableError> {
+        self.inner.tilt_to(t)
+    }
+    fn is_manual(&self) -> bool {
+        true
+    }
+    fn by_hand(
+        &mut self,
+        instruction: &str,
+        rotation: Degrees,
+        tilt: Option<Degrees>,
+    ) -> Result<(Degrees, Option<Degrees>), TurntableError> {
+        let (r, t) = self.inner.by_hand(instruction, rotation, tilt)?;
+        self.poses += 1;
+        let mut done = t.map_or(0.0, |t| t.0);
+        if self.poses > 3
+            && self.forgot < 2
+            && done != 0.0
+            && !instruction.starts_with("not there yet")
+        {
+            self.forgot += 1;
+            done = 0.0;
+        }
+        self.angle.set(r.0);
+        self.tilt.set(done);
+        Ok((r, t))
+    }
+}
+
 #[test]
-fn a_scripted_operator_following_the_manual_prompts_gets_there_too() {
-    let cfg = config(&[("turntable.kind", "\"manual\"")]);
+fn an_operator_following_the_manual_prompts_gets_there_and_is_asked_again_when_not() {
+    // two poses more than the motorised stage: the two the operator missed
+    let cfg = config(&[
+        ("turntable.kind", "\"manual\""),
+        ("turntable.tilt", "true"),
+        ("plan.poses", "18"),
+    ]);
     let op = Scripted::default();
-    let (r, events) = run(&cfg, Some(Box::new(op.clone())));
-    assert_core_claim(&r, &cfg, "manual stage with tilt, scripted operator");
+    let rig = rig();
+    let hw = hardware::open(&cfg, &rig, Some(Box::new(op.clone()))).unwrap();
+    let forgetful = Forgetful {
+        inner: hw.turntable,
+        angle: hw.angle.clone().unwrap(),
+        tilt: hw.tilt.clone().unwrap(),
+        poses: 0,
+        forgot: 0,
+    };
+    // the scene follows what the operator did (set by Forgetful), not what the station was told
+    let hw = hardware::Hardware {
+        turntable: Box::new(forgetful),
+        angle: None,
+        tilt: None,
+        ..hw
+    };
+    let (r, events) = run_hw(&cfg, hw);
+    assert_core_claim(
+        &r,
+        &cfg,
+        "manual stage with tilt, forgetful scripted operator",
+    );
     for e in &events {
         if let Event::PosePlanned { instruction, .. } = e {
             assert!(instruction.as_deref().is_some_and(|s| !s.is_empty()));
@@ -169,10 +262,7 @@ fn a_scripted_operator_following_the_manual_prompts_gets_there_too() {
     assert!(
         prompts[1..]
             .iter()
-            .all(|p| p.contains("turn the turntable to the"))
-    );
-    assert!(
-        prompts[1..].iter().all(|p| p.contains("of the image")),
+            .all(|p| p.contains("turn the turntable to the") && p.contains("of the image")),
         "{prompts:?}"
     );
     assert!(
@@ -181,6 +271,24 @@ fn a_scripted_operator_following_the_manual_prompts_gets_there_too() {
             .any(|p| p.contains("tilt the top of the cube")),
         "{prompts:?}"
     );
+    // exactly the two forgotten tilts were caught, and asked for again naming what the view shows
+    let not_met: Vec<_> = (r.views.iter())
+        .filter(|v| {
+            v.reason
+                .as_deref()
+                .is_some_and(|s| s.starts_with("not as prompted"))
+        })
+        .collect();
+    assert_eq!(not_met.len(), 2, "{:#?}", r.views);
+    let again: Vec<_> = prompts
+        .iter()
+        .filter(|p| p.starts_with("not there yet"))
+        .collect();
+    assert_eq!(again.len(), 2, "{prompts:?}");
+    for p in again {
+        eprintln!("{p}");
+        assert!(p.contains("with the cradle at about +0°"), "{p}");
+    }
 }
 
 /// The planner's covariance is the solver's: on noisy exact-model corners at planned stage poses,
@@ -259,7 +367,6 @@ fn predicted_covariance_equals_the_solvers_at_the_solution() {
 /// second Zaber device; homing levels the cradle, the tilt keeps its limits, one-axis stays one-axis.
 #[test]
 fn both_simulators_open_with_a_tilt_axis_and_keep_its_limits() {
-    use cubecal::turntable::{Degrees, TurntableError};
     for kind in ["\"sim-grbl\"", "\"sim-zaber\""] {
         let cfg = config(&[("turntable.kind", kind), ("turntable.tilt_max_deg", "25")]);
         let (mut t, sims, name) = hardware::open_turntable(&cfg, None).unwrap();
@@ -307,4 +414,13 @@ fn a_one_axis_verdict_names_the_fixed_parameters_and_why() {
         .expect("a turntable alone leaves k3 undetermined: fixed, with the reason");
     assert!(k3.reason.contains("do not determine"), "{}", k3.reason);
     assert!(r.notes.iter().any(|n| n.starts_with("k3 fixed at 0")));
+    // and it says which placements it lacks: tilted ones, named by motion and image region
+    let missing = (r.notes.iter())
+        .find(|n| n.starts_with("without a tilt axis"))
+        .expect("a note on the placements a tilt axis would add");
+    eprintln!("{missing}");
+    assert!(
+        missing.contains("its top tilted") && missing.contains("empty cell"),
+        "{missing}"
+    );
 }

@@ -333,6 +333,8 @@ struct Acquired {
     angle: Option<f64>,
     planned: Option<f64>,
     tilt: Option<f64>,
+    /// The planner's choice behind a planned pose, and how many prompts it has had (manual stages).
+    choice: Option<(plan::Choice, usize)>,
     /// The events of its grab, held back while the poses grabbed with it are detected (none when
     /// poses are taken one at a time: their events go out as they happen).
     events: Vec<Event>,
@@ -427,6 +429,8 @@ fn capture_poses(
     }
     let mut index = 0;
     let mut planned_out = false;
+    // A planned pose the operator of a manual stage did not reach: asked for again, with why.
+    let mut again: Option<Again> = None;
     while index < total && !planned_out {
         let mut batch = Vec::with_capacity(at_once);
         // An error that ends the run once the poses grabbed before it are accounted for, with the
@@ -448,6 +452,7 @@ fn capture_poses(
                 &mut planning,
                 &coverage,
                 move_limit,
+                again.take(),
             );
             let events = events.held();
             match acquired {
@@ -472,7 +477,35 @@ fn capture_poses(
             for e in a.events.drain(..) {
                 sink.event(&e);
             }
-            let pose = pose?;
+            let mut pose = pose?;
+            // A hand-placed pose is judged against its prompt: a view that is not still, not usable
+            // or not where the prompt puts the rig is rejected and the pose asked for again.
+            if hw.turntable.is_manual()
+                && let (Some(p), Some((choice, prompts))) = (planning.as_ref(), a.choice.take())
+            {
+                let unmet = match &pose.view {
+                    Some((view, _)) => p
+                        .misplaced(choice.pose, view, &coverage)
+                        .map(|m| m.words(matches!(hw.poses, Poses::Stage { .. }))),
+                    None => pose.record.reason.clone(),
+                };
+                if let Some(why) = unmet {
+                    if prompts < MAX_PROMPTS {
+                        tracing::info!(%why, prompts, "pose not as prompted; asking again");
+                        again = Some(Again {
+                            choice,
+                            prompts: prompts + 1,
+                            why: why.clone(),
+                        });
+                    }
+                    if pose.view.take().is_some() {
+                        pose.record.accepted = false;
+                        pose.record.reason = Some(format!("not as prompted: {why}"));
+                        pose.detection = None;
+                        pose.image = None;
+                    }
+                }
+            }
             if sink.wants_frames() {
                 let last = a.frames.last().map(|f| f.sequence).unwrap_or_default();
                 sink.event(&detected_event(index, last, &info, &pose, spec.rig));
@@ -533,8 +566,21 @@ fn capture_poses(
     Ok(out)
 }
 
+/// How many times a manual stage's operator is prompted for one planned pose before the plan moves on.
+const MAX_PROMPTS: usize = 3;
+
+/// A planned pose to prompt for again: the operator's view did not satisfy the last prompt.
+struct Again {
+    choice: plan::Choice,
+    /// Prompts for it so far.
+    prompts: usize,
+    /// What was wrong, in words.
+    why: String,
+}
+
 /// Plan, move to and grab pose `index`, recording its frames in the session; `None` when the planner
-/// has no pose left that shows the rig.
+/// has no pose left that shows the rig. `again` is a planned pose whose last prompt was not met.
+#[allow(clippy::too_many_arguments)]
 fn acquire(
     spec: &RunSpec<'_>,
     hw: &mut Hardware,
@@ -545,6 +591,7 @@ fn acquire(
     planning: &mut Option<plan::Planning>,
     coverage: &Coverage,
     move_limit: Duration,
+    again: Option<Again>,
 ) -> Result<Option<Acquired>, StationError> {
     let cfg = spec.config;
     let fpp = cfg.camera.frames_per_pose.max(1) as usize;
@@ -560,13 +607,19 @@ fn acquire(
     }
     let manual = hw.turntable.is_manual();
     let has_tilt = matches!(hw.poses, Poses::Stage { .. });
+    let mut chosen = None;
+    let not_met = again.as_ref().map(|a| a.why.clone());
     let (planned, tilt, target) = match &hw.poses {
         Poses::Angles(a) => (Some(a[index]), None, None),
         Poses::Stage { sweep: Some(s), .. } => {
             (Some(s[index].rotation_deg), Some(s[index].tilt_deg), None)
         }
         Poses::Stage { sweep: None, .. } => {
-            let Some(choice) = planning.as_mut().and_then(|p| p.choose()) else {
+            let (choice, prompts) = match again {
+                Some(a) => (Some(a.choice), a.prompts),
+                None => (planning.as_mut().and_then(|p| p.choose()), 1),
+            };
+            let Some(choice) = choice else {
                 tracing::info!(
                     poses = index,
                     "no candidate pose left that shows the rig; ending the plan"
@@ -587,24 +640,31 @@ fn acquire(
                 coverage.region_of(&mean),
                 coverage.newly_covered(&choice.points),
             );
-            (
+            let pose = (
                 Some(choice.pose.rotation_deg),
                 Some(choice.pose.tilt_deg),
                 Some(target),
-            )
+            );
+            chosen = Some((choice, prompts));
+            pose
         }
         Poses::Frames { angles } => (angles[index], None, None),
     };
     // A person moving the stage gets the whole pose in words (never empty for a manual pose).
+    // Asked again, it first says what was wrong with the last attempt.
     let instruction = (manual && moving).then(|| {
-        plan::instruction(
+        let words = plan::instruction(
             plan::StagePose {
                 rotation_deg: planned.unwrap_or(0.0),
                 tilt_deg: tilt.unwrap_or(0.0),
             },
             has_tilt,
             target,
-        )
+        );
+        match &not_met {
+            Some(why) => format!("not there yet, {why}; {words}"),
+            None => words,
+        }
     });
     sink.event(&Event::PosePlanned {
         index,
@@ -690,6 +750,7 @@ fn acquire(
         angle,
         planned,
         tilt,
+        choice: chosen,
         events: Vec::new(),
     }))
 }
@@ -1309,6 +1370,18 @@ fn solve_and_judge(
             views: &result.views,
         });
         result.verdict.fixed = fixed;
+        if let Some(missing) = missing_without_tilt(spec, &poses, &cal, &fit, &coverage) {
+            tracing::info!(%missing, "placements a tilt axis would add");
+            if let Some(c) =
+                (result.verdict.checks.iter_mut()).find(|c| c.name == "coverage" && !c.pass)
+            {
+                c.hint = Some(match c.hint.take() {
+                    Some(h) => format!("{h}; {missing}"),
+                    None => missing.clone(),
+                });
+            }
+            notes.push(missing);
+        }
         for u in crate::calib::undetermined_parameters(&cal) {
             notes.push(format!(
                 "{} is not determined by these views ({:.4} ± {:.4}; 1σ moves the image border by {:.1} px)",
@@ -1322,6 +1395,47 @@ fn solve_and_judge(
         finish_write(&mut writing)?;
         Ok(result)
     })
+}
+
+/// On a turntable without a tilt axis: which cells the rig never reached and the tilted placements
+/// that would fill them ([`plan::missing_without_tilt`]), from the solved camera and the fitted
+/// views' poses at their recorded angles. `None` on a two-axis stage, without a turntable, and when
+/// nothing is missing.
+fn missing_without_tilt(
+    spec: &RunSpec<'_>,
+    poses: &[PoseData],
+    cal: &crate::calib::Calibration,
+    fit: &[View],
+    coverage: &Coverage,
+) -> Option<String> {
+    use config::TurntableKind;
+    let t = &spec.config.turntable;
+    if t.has_tilt() || matches!(t.kind, TurntableKind::None) {
+        return None;
+    }
+    let records: Vec<&ViewRecord> = (poses.iter())
+        .filter(|p| p.view.is_some())
+        .map(|p| &p.record)
+        .collect();
+    if records
+        .iter()
+        .any(|r| r.angle_deg.is_none() || r.tilt_deg.is_some())
+    {
+        return None;
+    }
+    let views: Vec<(crate::camera::Pose, f64)> = (fit.iter().zip(&cal.views))
+        .filter_map(|(v, solved)| {
+            let r = records.iter().find(|r| r.name == v.name)?;
+            Some((solved.cam_from_rig, r.angle_deg?))
+        })
+        .collect();
+    let t = &spec.config.turntable;
+    let planner = plan::Planner::for_station(
+        spec.config,
+        spec.rig,
+        Some((t.tilt_min_deg, t.tilt_max_deg)),
+    );
+    plan::missing_without_tilt(&planner, &cal.camera, &views, coverage)
 }
 
 /// Wait for a file being written on a thread of its own (if it still is) and return how it went.
