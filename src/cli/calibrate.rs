@@ -59,6 +59,10 @@ pub struct CalibrateArgs {
     /// Identity to store the profile under for synthetic and image runs (camera.device_id).
     #[arg(long)]
     pub device_id: Option<String>,
+    /// Refine the rig's faces jointly with the camera (solve.refine_rig): for a hand-built rig whose
+    /// boards sit slightly off the rig file.
+    #[arg(long)]
+    pub refine_rig: bool,
     #[command(flatten)]
     pub http: super::live::HttpArgs,
     /// Set any config key: --set qa.max_rms_px=0.2 (repeatable).
@@ -84,7 +88,9 @@ impl From<&CalibrateArgs> for RunRequest {
             device_id: a.device_id.clone(),
             http: a.http.http.clone(),
             http_token_file: a.http.http_token_file.clone(),
-            set: a.set.clone(),
+            set: (a.set.iter().cloned())
+                .chain(a.refine_rig.then(|| "solve.refine_rig=true".to_string()))
+                .collect(),
         }
     }
 }

@@ -315,6 +315,11 @@ pub struct SolveSection {
     /// smaller but miss that bias (χ² of fx, fy, cx, cy against the truth 34 / 16 / 24 against
     /// 17 / 7.5 / 10 equally weighted, seeds 1–3, `examples/station_chi2.rs`; issue 29).
     pub weighting: String,
+    /// Refine the rig's faces jointly with the camera ([`crate::calib::solve_rig`]): a hand-built
+    /// cube's boards sit a millimetre off and tilted a fraction of a degree, which the plain solve
+    /// takes for lens and pose. The refined faces are noted in the result; when the views cannot
+    /// place a face the run keeps the rig file's faces and says why.
+    pub refine_rig: bool,
 }
 
 impl Default for SolveSection {
@@ -325,6 +330,7 @@ impl Default for SolveSection {
             loss: "huber:1".into(),
             fix_undetermined_k3: true,
             weighting: "equal".into(),
+            refine_rig: false,
         }
     }
 }

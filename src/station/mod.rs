@@ -1149,8 +1149,8 @@ fn sufficient(spec: &RunSpec<'_>, poses: &[PoseData], coverage: &Coverage, w: u3
     let Ok(opts) = cfg.solve_options("station config") else {
         return false;
     };
-    match crate::calib::solve(fit, [w, h], &opts) {
-        Ok(cal) => {
+    match solve_views(spec, fit, [w, h], &opts) {
+        Ok((cal, _)) => {
             use crate::camera::idx;
             // k3 must be determined too when the solve would otherwise fix it
             let k3_ok = !cfg.solve.fix_undetermined_k3
@@ -1262,8 +1262,8 @@ fn solve_and_judge(
         });
         let mut opts = cfg.solve_options("station config")?;
         let mut fixed = configured_fixes(&opts, image_size);
-        let mut cal = match notify::alive_during(sink, SOLVE_LIMIT, || {
-            crate::calib::solve(&fit, image_size, &opts)
+        let (mut cal, mut rig_solve) = match notify::alive_during(sink, SOLVE_LIMIT, || {
+            solve_views(spec, &fit, image_size, &opts)
         }) {
             Ok(c) => c,
             Err(e) => {
@@ -1280,9 +1280,9 @@ fn solve_and_judge(
             let (k3, k3_sd) = (k3.value, k3.std_dev);
             opts.fix.k3 = true;
             match notify::alive_during(sink, SOLVE_LIMIT, || {
-                crate::calib::solve(&fit, image_size, &opts)
+                solve_views(spec, &fit, image_size, &opts)
             }) {
-                Ok(c) => {
+                Ok((c, r)) => {
                     let why = format!(
                         "these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}, within {}σ of 0, and 1σ moves the image border by {:.1} px); add poses with the rig near the image corners to estimate it",
                         crate::calib::SIGNIFICANCE_SIGMAS,
@@ -1295,7 +1295,7 @@ fn solve_and_judge(
                         value: 0.0,
                         reason: why,
                     });
-                    cal = c;
+                    (cal, rig_solve) = (c, r);
                 }
                 Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
             }
@@ -1316,12 +1316,12 @@ fn solve_and_judge(
             .then(|| {
                 notify::alive_during(sink, SOLVE_LIMIT, || {
                     let views = crate::detect::undistorted::refit_recorded(&recorded, &cal.camera)?;
-                    let c = crate::calib::solve(&views[..n_fit], image_size, &opts).ok()?;
+                    let c = solve_views(spec, &views[..n_fit], image_size, &opts).ok()?;
                     Some((views, c))
                 })
             })
             .flatten();
-        if let Some((views, c)) = refitted
+        if let Some((views, (c, r))) = refitted
             && c.rms_px < cal.rms_px
         {
             tracing::info!(
@@ -1330,6 +1330,7 @@ fn solve_and_judge(
                 "corners refitted with the lens"
             );
             (fit, held, cal) = (views[..n_fit].to_vec(), views[n_fit..].to_vec(), c);
+            rig_solve = r;
             (accepted.iter_mut().zip(views)).for_each(|(a, v)| a.0 = v);
             let refitted = observations_json(&accepted)?;
             finish_write(&mut writing)?;
@@ -1337,6 +1338,33 @@ fn solve_and_judge(
             writing = Some(scope.spawn(move || write_file(path, &refitted)));
         }
         laps.lap("lens refit and its solve");
+        // With the rig refined, the held-out views (and the fitted ones, for their residuals) are
+        // placed on the refined rig.
+        match rig_solve {
+            Some(Ok(refined)) => {
+                notes.push(format!(
+                    "rig refined jointly with the camera (reference face '{}'): {}",
+                    spec.rig.faces[refined.reference_face].name,
+                    (refined.faces.iter())
+                        .map(crate::calib::FaceCorrection::describe)
+                        .collect::<Vec<_>>()
+                        .join("; ")
+                ));
+                let placed = place_on(&fit, spec.rig, &refined.rig)
+                    .and_then(|f| Ok((f, place_on(&held, spec.rig, &refined.rig)?)));
+                match placed {
+                    Ok((f, h)) => (fit, held) = (f, h),
+                    Err(e) => tracing::warn!(error = %e, "views not placed on the refined rig"),
+                }
+            }
+            Some(Err(e)) => {
+                tracing::warn!(error = %e, "rig not refined");
+                notes.push(format!(
+                    "rig not refined ({e}); the rig file's faces were used"
+                ));
+            }
+            None => {}
+        }
         let mut held_out = Vec::new();
         let mut held_failures = Vec::new();
         for v in &held {
@@ -1395,6 +1423,76 @@ fn solve_and_judge(
         finish_write(&mut writing)?;
         Ok(result)
     })
+}
+
+/// A solve of the station's views: the camera, and with `solve.refine_rig` the rig refinement
+/// ([`crate::calib::solve_rig`]) whose camera it is — or why the rig could not be refined, the
+/// camera then being the plain solve's with the rig file's faces.
+type Solved = (
+    crate::calib::Calibration,
+    Option<Result<crate::calib::RigCalibration, crate::calib::CalibError>>,
+);
+
+/// Solve `views` with `opts` (see [`Solved`]).
+fn solve_views(
+    spec: &RunSpec<'_>,
+    views: &[View],
+    image_size: [u32; 2],
+    opts: &crate::calib::SolveOptions,
+) -> Result<Solved, crate::calib::CalibError> {
+    if !spec.config.solve.refine_rig {
+        return Ok((crate::calib::solve(views, image_size, opts)?, None));
+    }
+    match refine_rig(spec.rig, views, image_size, opts) {
+        Ok(r) => Ok((r.calibration.clone(), Some(Ok(r)))),
+        Err(e) => Ok((crate::calib::solve(views, image_size, opts)?, Some(Err(e)))),
+    }
+}
+
+/// The camera solved with the rig's faces refined ([`crate::calib::solve_rig`]; model, fixes and
+/// loss as `opts`); an unconverged fit is an error.
+fn refine_rig(
+    rig: &Rig,
+    views: &[View],
+    image_size: [u32; 2],
+    opts: &crate::calib::SolveOptions,
+) -> Result<crate::calib::RigCalibration, crate::calib::CalibError> {
+    use crate::calib::{RigRefineOptions, RigView, Weighting};
+    let mut labelled = (views.iter())
+        .map(|v| RigView::from_view(v, rig))
+        .collect::<Result<Vec<_>, _>>()?;
+    // Corners weighted alike because the detector's σ miss its bias (solve.weighting, issue 29):
+    // then those σ are not the yardstick of a rig that fits either, the faces' residuals are.
+    if opts.weighting == Weighting::Equal {
+        for p in labelled.iter_mut().flat_map(|v| v.points.iter_mut()) {
+            p.sigma_px = None;
+        }
+    }
+    let ropts = RigRefineOptions {
+        solve: opts.clone(),
+        ..RigRefineOptions::default()
+    };
+    let refined = crate::calib::solve_rig(rig, &labelled, image_size, &ropts)?;
+    if !refined.calibration.termination.is_converged() {
+        return Err(crate::calib::CalibError::Degenerate {
+            reason: format!(
+                "the fit with the rig refined did not converge ({})",
+                refined.calibration.termination.as_str()
+            ),
+        });
+    }
+    Ok(refined)
+}
+
+/// `views` (corners of `nominal`) with each corner where `refined` puts it.
+fn place_on(
+    views: &[View],
+    nominal: &Rig,
+    refined: &Rig,
+) -> Result<Vec<View>, crate::calib::CalibError> {
+    (views.iter())
+        .map(|v| crate::calib::RigView::from_view(v, nominal)?.to_view(refined))
+        .collect()
 }
 
 /// On a turntable without a tilt axis: which cells the rig never reached and the tilted placements
