@@ -162,6 +162,37 @@ impl EventSink for Human {
             Event::ViewRejected { name, reason, .. } => {
                 self.line(format!("{name}: rejected: {reason}"));
             }
+            Event::PoseChosen {
+                index,
+                rotation_deg,
+                tilt_deg,
+                corners,
+                predicted,
+            } => {
+                let sigma: Vec<String> = (predicted.iter())
+                    .filter(|p| matches!(p.name, "cx" | "cy"))
+                    .map(|p| format!("σ({}) → {:.3} px", p.name, p.sigma))
+                    .collect();
+                self.line(format!(
+                    "pose {index:02}: planned at rotation {rotation_deg:+.0}°, tilt {tilt_deg:+.0}° ({corners} corners predicted{})",
+                    if sigma.is_empty() {
+                        String::new()
+                    } else {
+                        format!("; {}", sigma.join(", "))
+                    }
+                ));
+            }
+            Event::Coverage {
+                cells_covered,
+                cells_total,
+                fraction,
+                ..
+            } => {
+                self.line(format!(
+                    "coverage: {cells_covered} of {cells_total} cells ({:.0} %)",
+                    100.0 * fraction
+                ));
+            }
             Event::SpoolDrained {
                 store,
                 committed,
