@@ -261,6 +261,11 @@ fn verdict_fails_on_poor_coverage_and_says_where_to_put_the_rig() {
         hint.contains("corners cover") && hint.contains("near the image corners"),
         "{hint}"
     );
+    // a turntable alone: the hint names the tilted placements it lacks
+    assert!(
+        hint.contains("without a tilt axis") && hint.contains("its top tilted"),
+        "{hint}"
+    );
     assert!(r.profile.is_none() && !dir.path().join("run/profile.json").exists());
     assert!(dir.path().join("run/result.json").exists());
 }
