@@ -271,7 +271,8 @@ fn an_operator_following_the_manual_prompts_gets_there_and_is_asked_again_when_n
             .any(|p| p.contains("tilt the top of the cube")),
         "{prompts:?}"
     );
-    // exactly the two forgotten tilts were caught, and asked for again naming what the view shows
+    // exactly the two forgotten tilts were caught (their views kept for the calibration), and
+    // asked for again naming what the view shows
     let not_met: Vec<_> = (r.views.iter())
         .filter(|v| {
             v.reason
@@ -280,6 +281,7 @@ fn an_operator_following_the_manual_prompts_gets_there_and_is_asked_again_when_n
         })
         .collect();
     assert_eq!(not_met.len(), 2, "{:#?}", r.views);
+    assert!(not_met.iter().all(|v| v.accepted), "{not_met:#?}");
     let again: Vec<_> = prompts
         .iter()
         .filter(|p| p.starts_with("not there yet"))

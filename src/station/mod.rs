@@ -478,8 +478,11 @@ fn capture_poses(
                 sink.event(&e);
             }
             let mut pose = pose?;
-            // A hand-placed pose is judged against its prompt: a view that is not still, not usable
-            // or not where the prompt puts the rig is rejected and the pose asked for again.
+            // A hand-placed pose is judged against its prompt: after a view that is not still, not
+            // usable or not where the prompt puts the rig, the pose is asked for again. A usable
+            // view elsewhere still calibrates (its corners are as good), but its stage pose is not
+            // the prompted one, so the planner does not learn from it.
+            let mut misplaced = false;
             if hw.turntable.is_manual()
                 && let (Some(p), Some((choice, prompts))) = (planning.as_ref(), a.choice.take())
             {
@@ -498,11 +501,11 @@ fn capture_poses(
                             why: why.clone(),
                         });
                     }
-                    if pose.view.take().is_some() {
-                        pose.record.accepted = false;
-                        pose.record.reason = Some(format!("not as prompted: {why}"));
-                        pose.detection = None;
-                        pose.image = None;
+                    if pose.view.is_some() {
+                        misplaced = true;
+                        pose.record.reason = Some(format!(
+                            "not as prompted (kept for the calibration, not for the plan): {why}"
+                        ));
                     }
                 }
             }
@@ -512,7 +515,9 @@ fn capture_poses(
             }
             match &pose.view {
                 Some((view, _)) => {
-                    if let (Some(p), Some(r), Some(t)) = (planning.as_mut(), a.planned, a.tilt) {
+                    if let (Some(p), Some(r), Some(t), false) =
+                        (planning.as_mut(), a.planned, a.tilt, misplaced)
+                    {
                         p.accepted(
                             plan::StagePose {
                                 rotation_deg: r,
