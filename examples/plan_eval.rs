@@ -4,8 +4,10 @@
 //! ```sh
 //! cargo run --example plan_eval -- table 20     # line 1: coverage, k3, fx/fy, σ(cx, cy), cx/cy per seed
 //! cargo run --example plan_eval -- compare 10   # line 2: poses to reach the σ targets, planned vs sweep
+//! cargo run --example plan_eval -- manual 20    # line 3: line 1's table, a scripted operator moving a manual stage
 //! ```
-//! (Line 3, the scripted operator, is `tests/station_plan.rs`: a manual stage renders the same poses.)
+//! (The manual table's operator does what each prompt says; `tests/station_plan.rs` has one that
+//! forgets tilts and is asked again.)
 //! Every run is a real station run (render, detect, solve, judge) through the GRBL simulator on a
 //! pseudo-terminal; seeds change the render noise. Each table row says which bars it meets.
 #![allow(clippy::print_stdout, clippy::print_stderr)]
@@ -14,8 +16,9 @@ use std::sync::atomic::AtomicBool;
 
 use anyhow::Result;
 use cubecal::rig::Rig;
-use cubecal::station::config::{StationConfig, set_key};
+use cubecal::station::config::{StationConfig, TurntableKind, set_key};
 use cubecal::station::{RunResult, RunSpec, hardware};
+use cubecal::turntable::manual::Operator;
 
 const CUBE: &str = include_str!("../fixtures/rigs/cube_outside.toml");
 
@@ -34,7 +37,8 @@ pub const ACCEPTANCE: &[(&str, &str)] = &[
     ("synthetic.noise", "2.0"),
     ("synthetic.gamma", "2.2"),
     ("synthetic.vignetting", "0.3"),
-    ("synthetic.supersample", "2"),
+    // 4×4 sub-samples: 2×2 locate an edge only to 1/4 px and bias cx by ~0.3 px (tests/station.rs)
+    ("synthetic.supersample", "4"),
     ("turntable.kind", "\"sim-grbl\""),
     ("turntable.tilt", "true"),
     ("plan.poses", "40"),
@@ -58,9 +62,20 @@ fn config(extra: &[(&str, String)]) -> Result<StationConfig> {
     Ok(StationConfig::from_table(t, "plan_eval")?)
 }
 
+/// An operator who does what every prompt says and confirms.
+struct Follows;
+
+impl Operator for Follows {
+    fn confirm(&mut self, _instruction: &str) -> std::io::Result<bool> {
+        Ok(true)
+    }
+}
+
 fn run(cfg: &StationConfig) -> Result<(RunResult, f64)> {
     let rig = Rig::from_toml_str(CUBE, "cube_outside.toml")?.0;
-    let hw = hardware::open(cfg, &rig, None)?;
+    let operator: Option<Box<dyn Operator>> = (cfg.turntable.kind == TurntableKind::Manual)
+        .then(|| Box::new(Follows) as Box<dyn Operator>);
+    let hw = hardware::open(cfg, &rig, operator)?;
     let dir = tempfile::tempdir()?;
     let run_dir = dir.path().join("run");
     let spec = RunSpec {
@@ -87,13 +102,17 @@ fn coverage(r: &RunResult) -> f64 {
         .map_or(f64::NAN, |c| c.value)
 }
 
-fn table(seeds: u64) -> Result<()> {
+fn table(seeds: u64, manual: bool) -> Result<()> {
     println!(
         "seed poses cover   k3 (est ± σ, truth 0.05)   fx err %  fy err %  σcx    σcy    cx err  cy err  verdict  line1  time"
     );
     let mut met = 0;
     for seed in 1..=seeds {
-        let cfg = config(&[("synthetic.seed", seed.to_string())])?;
+        let mut keys = vec![("synthetic.seed", seed.to_string())];
+        if manual {
+            keys.push(("turntable.kind", "\"manual\"".into()));
+        }
+        let cfg = config(&keys)?;
         let truth = cfg.synthetic.camera();
         let (r, secs) = match run(&cfg) {
             Ok(x) => x,
@@ -183,8 +202,9 @@ fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let n = |d: u64| args.get(1).and_then(|s| s.parse().ok()).unwrap_or(d);
     match args.first().map(String::as_str) {
-        Some("table") => table(n(20)),
+        Some("table") => table(n(20), false),
+        Some("manual") => table(n(20), true),
         Some("compare") => compare(n(10)),
-        _ => anyhow::bail!("usage: plan_eval table [SEEDS] | compare [SEEDS]"),
+        _ => anyhow::bail!("usage: plan_eval table [SEEDS] | compare [SEEDS] | manual [SEEDS]"),
     }
 }

@@ -25,9 +25,11 @@ use cubecal::turntable::{Degrees, Turntable, TurntableError};
 
 const CUBE: &str = include_str!("../fixtures/rigs/cube_outside.toml");
 
+/// The station config of `keys`, on a one-axis turntable unless they say otherwise: this file is the
+/// turntable-only station (the simulators' default tilt axis is `tests/station_plan.rs`'s).
 fn config(keys: &[(&str, &str)]) -> StationConfig {
     let mut t = toml::Table::new();
-    for (k, v) in keys {
+    for (k, v) in [("turntable.tilt", "false")].iter().chain(keys) {
         set_key(&mut t, k, v).unwrap();
     }
     StationConfig::from_table(t, "test").unwrap()
@@ -257,6 +259,11 @@ fn verdict_fails_on_poor_coverage_and_says_where_to_put_the_rig() {
     let hint = hint_of(&r, "coverage");
     assert!(
         hint.contains("corners cover") && hint.contains("near the image corners"),
+        "{hint}"
+    );
+    // a turntable alone: the hint names the tilted placements it lacks
+    assert!(
+        hint.contains("without a tilt axis") && hint.contains("its top tilted"),
         "{hint}"
     );
     assert!(r.profile.is_none() && !dir.path().join("run/profile.json").exists());

@@ -59,6 +59,10 @@ pub struct CalibrateArgs {
     /// Identity to store the profile under for synthetic and image runs (camera.device_id).
     #[arg(long)]
     pub device_id: Option<String>,
+    /// Refine the rig's faces jointly with the camera (solve.refine_rig): for a hand-built rig whose
+    /// boards sit slightly off the rig file.
+    #[arg(long)]
+    pub refine_rig: bool,
     #[command(flatten)]
     pub http: super::live::HttpArgs,
     /// Set any config key: --set qa.max_rms_px=0.2 (repeatable).
@@ -84,7 +88,9 @@ impl From<&CalibrateArgs> for RunRequest {
             device_id: a.device_id.clone(),
             http: a.http.http.clone(),
             http_token_file: a.http.http_token_file.clone(),
-            set: a.set.clone(),
+            set: (a.set.iter().cloned())
+                .chain(a.refine_rig.then(|| "solve.refine_rig=true".to_string()))
+                .collect(),
         }
     }
 }
@@ -155,6 +161,37 @@ impl EventSink for Human {
             }
             Event::ViewRejected { name, reason, .. } => {
                 self.line(format!("{name}: rejected: {reason}"));
+            }
+            Event::PoseChosen {
+                index,
+                rotation_deg,
+                tilt_deg,
+                corners,
+                predicted,
+            } => {
+                let sigma: Vec<String> = (predicted.iter())
+                    .filter(|p| matches!(p.name, "cx" | "cy"))
+                    .map(|p| format!("σ({}) → {:.3} px", p.name, p.sigma))
+                    .collect();
+                self.line(format!(
+                    "pose {index:02}: planned at rotation {rotation_deg:+.0}°, tilt {tilt_deg:+.0}° ({corners} corners predicted{})",
+                    if sigma.is_empty() {
+                        String::new()
+                    } else {
+                        format!("; {}", sigma.join(", "))
+                    }
+                ));
+            }
+            Event::Coverage {
+                cells_covered,
+                cells_total,
+                fraction,
+                ..
+            } => {
+                self.line(format!(
+                    "coverage: {cells_covered} of {cells_total} cells ({:.0} %)",
+                    100.0 * fraction
+                ));
             }
             Event::SpoolDrained {
                 store,

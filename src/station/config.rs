@@ -114,8 +114,10 @@ pub struct TurntableSection {
     /// Longest wait for one reply of a serial turntable (raise it for slow links or emulation).
     pub reply_timeout_ms: u64,
     /// The stage has a tilt axis (a cradle under the table): the simulators then run a second
-    /// simulator for it; real hardware needs `tilt_port`.
-    pub tilt: bool,
+    /// simulator for it; real hardware needs `tilt_port`. Unset: the simulators have one (they
+    /// show the whole station), hardware has one when `tilt_port` is set, a manual table has none
+    /// ([`TurntableSection::has_tilt`]).
+    pub tilt: Option<bool>,
     /// Serial port of the tilt axis's driver (a second GRBL board or Zaber device, same protocol as
     /// `kind`).
     pub tilt_port: Option<String>,
@@ -139,7 +141,7 @@ impl Default for TurntableSection {
             microsteps_per_degree: crate::turntable::zaber::X_RSW60A_MICROSTEPS_PER_DEGREE,
             move_timeout_s: 60,
             reply_timeout_ms: crate::turntable::DEFAULT_EXCHANGE_TIMEOUT.as_millis() as u64,
-            tilt: false,
+            tilt: None,
             tilt_port: None,
             tilt_min_deg: -30.0,
             tilt_max_deg: 30.0,
@@ -150,6 +152,16 @@ impl Default for TurntableSection {
 }
 
 impl TurntableSection {
+    /// Whether the stage has a tilt axis: `tilt` when set, else the simulators do, hardware does
+    /// when `tilt_port` names the tilt driver, and a manual table does not.
+    pub fn has_tilt(&self) -> bool {
+        self.tilt.unwrap_or(match self.kind {
+            TurntableKind::SimGrbl | TurntableKind::SimZaber => true,
+            TurntableKind::Grbl | TurntableKind::Zaber => self.tilt_port.is_some(),
+            TurntableKind::Manual | TurntableKind::None => false,
+        })
+    }
+
     /// Where the rig sits on the stage's axes.
     pub fn geometry(&self) -> crate::render::StageGeometry {
         crate::render::StageGeometry {
@@ -303,6 +315,11 @@ pub struct SolveSection {
     /// smaller but miss that bias (χ² of fx, fy, cx, cy against the truth 34 / 16 / 24 against
     /// 17 / 7.5 / 10 equally weighted, seeds 1–3, `examples/station_chi2.rs`; issue 29).
     pub weighting: String,
+    /// Refine the rig's faces jointly with the camera ([`crate::calib::solve_rig`]): a hand-built
+    /// cube's boards sit a millimetre off and tilted a fraction of a degree, which the plain solve
+    /// takes for lens and pose. The refined faces are noted in the result; when the views cannot
+    /// place a face the run keeps the rig file's faces and says why.
+    pub refine_rig: bool,
 }
 
 impl Default for SolveSection {
@@ -313,6 +330,7 @@ impl Default for SolveSection {
             loss: "huber:1".into(),
             fix_undetermined_k3: true,
             weighting: "equal".into(),
+            refine_rig: false,
         }
     }
 }

@@ -128,8 +128,9 @@ type OneAxis = (Box<dyn Turntable>, Option<SimHandle>, String);
 /// A turntable, the simulators serving it (if any) and its description.
 pub type OpenedTurntable = (Box<dyn Turntable>, Vec<SimHandle>, String);
 
-/// Open the turntable the config names, on a tilting cradle when `turntable.tilt` is set and the
-/// kind can have one (the simulators always; GRBL and Zaber with `turntable.tilt_port`): the tilt
+/// Open the turntable the config names, on a tilting cradle when it has one
+/// ([`TurntableSection::has_tilt`](super::config::TurntableSection::has_tilt)) and the kind can
+/// have one (the simulators always; GRBL and Zaber with `turntable.tilt_port`): the tilt
 /// driver is a second simulator of the same protocol (GRBL on axis B, Zaber device 2) or the driver
 /// on `tilt_port`. `operator` answers a manual turntable's prompts.
 pub fn open_turntable(
@@ -143,7 +144,7 @@ pub fn open_turntable(
         TurntableKind::Grbl | TurntableKind::Zaber => t.tilt_port.clone().map(Some),
         TurntableKind::Manual | TurntableKind::None => None,
     };
-    let Some(port) = tilt_port.filter(|_| t.tilt) else {
+    let Some(port) = tilt_port.filter(|_| t.has_tilt()) else {
         return Ok((rotation, sim.into_iter().collect(), name));
     };
     let (tilt, tilt_sim, tilt_name) = open_axis(cfg, None, port, Axis::B, 2)?;
@@ -206,7 +207,7 @@ fn open_axis(
         TurntableKind::Manual => {
             let op = operator.ok_or_else(|| StationError::NoOperator)?;
             let table = ManualTurntable::new(op, MANUAL_RESOLUTION)?;
-            if t.tilt {
+            if t.has_tilt() {
                 let limits = (
                     crate::turntable::Degrees(t.tilt_min_deg),
                     crate::turntable::Degrees(t.tilt_max_deg),

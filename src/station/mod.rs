@@ -333,6 +333,8 @@ struct Acquired {
     angle: Option<f64>,
     planned: Option<f64>,
     tilt: Option<f64>,
+    /// The planner's choice behind a planned pose, and how many prompts it has had (manual stages).
+    choice: Option<(plan::Choice, usize)>,
     /// The events of its grab, held back while the poses grabbed with it are detected (none when
     /// poses are taken one at a time: their events go out as they happen).
     events: Vec<Event>,
@@ -427,6 +429,8 @@ fn capture_poses(
     }
     let mut index = 0;
     let mut planned_out = false;
+    // A planned pose the operator of a manual stage did not reach: asked for again, with why.
+    let mut again: Option<Again> = None;
     while index < total && !planned_out {
         let mut batch = Vec::with_capacity(at_once);
         // An error that ends the run once the poses grabbed before it are accounted for, with the
@@ -448,6 +452,7 @@ fn capture_poses(
                 &mut planning,
                 &coverage,
                 move_limit,
+                again.take(),
             );
             let events = events.held();
             match acquired {
@@ -472,14 +477,47 @@ fn capture_poses(
             for e in a.events.drain(..) {
                 sink.event(&e);
             }
-            let pose = pose?;
+            let mut pose = pose?;
+            // A hand-placed pose is judged against its prompt: after a view that is not still, not
+            // usable or not where the prompt puts the rig, the pose is asked for again. A usable
+            // view elsewhere still calibrates (its corners are as good), but its stage pose is not
+            // the prompted one, so the planner does not learn from it.
+            let mut misplaced = false;
+            if hw.turntable.is_manual()
+                && let (Some(p), Some((choice, prompts))) = (planning.as_ref(), a.choice.take())
+            {
+                let unmet = match &pose.view {
+                    Some((view, _)) => p
+                        .misplaced(choice.pose, view, &coverage)
+                        .map(|m| m.words(matches!(hw.poses, Poses::Stage { .. }))),
+                    None => pose.record.reason.clone(),
+                };
+                if let Some(why) = unmet {
+                    if prompts < MAX_PROMPTS {
+                        tracing::info!(%why, prompts, "pose not as prompted; asking again");
+                        again = Some(Again {
+                            choice,
+                            prompts: prompts + 1,
+                            why: why.clone(),
+                        });
+                    }
+                    if pose.view.is_some() {
+                        misplaced = true;
+                        pose.record.reason = Some(format!(
+                            "not as prompted (kept for the calibration, not for the plan): {why}"
+                        ));
+                    }
+                }
+            }
             if sink.wants_frames() {
                 let last = a.frames.last().map(|f| f.sequence).unwrap_or_default();
                 sink.event(&detected_event(index, last, &info, &pose, spec.rig));
             }
             match &pose.view {
                 Some((view, _)) => {
-                    if let (Some(p), Some(r), Some(t)) = (planning.as_mut(), a.planned, a.tilt) {
+                    if let (Some(p), Some(r), Some(t), false) =
+                        (planning.as_mut(), a.planned, a.tilt, misplaced)
+                    {
                         p.accepted(
                             plan::StagePose {
                                 rotation_deg: r,
@@ -533,8 +571,21 @@ fn capture_poses(
     Ok(out)
 }
 
+/// How many times a manual stage's operator is prompted for one planned pose before the plan moves on.
+const MAX_PROMPTS: usize = 3;
+
+/// A planned pose to prompt for again: the operator's view did not satisfy the last prompt.
+struct Again {
+    choice: plan::Choice,
+    /// Prompts for it so far.
+    prompts: usize,
+    /// What was wrong, in words.
+    why: String,
+}
+
 /// Plan, move to and grab pose `index`, recording its frames in the session; `None` when the planner
-/// has no pose left that shows the rig.
+/// has no pose left that shows the rig. `again` is a planned pose whose last prompt was not met.
+#[allow(clippy::too_many_arguments)]
 fn acquire(
     spec: &RunSpec<'_>,
     hw: &mut Hardware,
@@ -545,6 +596,7 @@ fn acquire(
     planning: &mut Option<plan::Planning>,
     coverage: &Coverage,
     move_limit: Duration,
+    again: Option<Again>,
 ) -> Result<Option<Acquired>, StationError> {
     let cfg = spec.config;
     let fpp = cfg.camera.frames_per_pose.max(1) as usize;
@@ -560,13 +612,19 @@ fn acquire(
     }
     let manual = hw.turntable.is_manual();
     let has_tilt = matches!(hw.poses, Poses::Stage { .. });
+    let mut chosen = None;
+    let not_met = again.as_ref().map(|a| a.why.clone());
     let (planned, tilt, target) = match &hw.poses {
         Poses::Angles(a) => (Some(a[index]), None, None),
         Poses::Stage { sweep: Some(s), .. } => {
             (Some(s[index].rotation_deg), Some(s[index].tilt_deg), None)
         }
         Poses::Stage { sweep: None, .. } => {
-            let Some(choice) = planning.as_mut().and_then(|p| p.choose()) else {
+            let (choice, prompts) = match again {
+                Some(a) => (Some(a.choice), a.prompts),
+                None => (planning.as_mut().and_then(|p| p.choose()), 1),
+            };
+            let Some(choice) = choice else {
                 tracing::info!(
                     poses = index,
                     "no candidate pose left that shows the rig; ending the plan"
@@ -587,24 +645,31 @@ fn acquire(
                 coverage.region_of(&mean),
                 coverage.newly_covered(&choice.points),
             );
-            (
+            let pose = (
                 Some(choice.pose.rotation_deg),
                 Some(choice.pose.tilt_deg),
                 Some(target),
-            )
+            );
+            chosen = Some((choice, prompts));
+            pose
         }
         Poses::Frames { angles } => (angles[index], None, None),
     };
     // A person moving the stage gets the whole pose in words (never empty for a manual pose).
+    // Asked again, it first says what was wrong with the last attempt.
     let instruction = (manual && moving).then(|| {
-        plan::instruction(
+        let words = plan::instruction(
             plan::StagePose {
                 rotation_deg: planned.unwrap_or(0.0),
                 tilt_deg: tilt.unwrap_or(0.0),
             },
             has_tilt,
             target,
-        )
+        );
+        match &not_met {
+            Some(why) => format!("not there yet, {why}; {words}"),
+            None => words,
+        }
     });
     sink.event(&Event::PosePlanned {
         index,
@@ -690,6 +755,7 @@ fn acquire(
         angle,
         planned,
         tilt,
+        choice: chosen,
         events: Vec::new(),
     }))
 }
@@ -1088,8 +1154,8 @@ fn sufficient(spec: &RunSpec<'_>, poses: &[PoseData], coverage: &Coverage, w: u3
     let Ok(opts) = cfg.solve_options("station config") else {
         return false;
     };
-    match crate::calib::solve(fit, [w, h], &opts) {
-        Ok(cal) => {
+    match solve_views(spec, fit, [w, h], &opts) {
+        Ok((cal, _)) => {
             use crate::camera::idx;
             // k3 must be determined too when the solve would otherwise fix it
             let k3_ok = !cfg.solve.fix_undetermined_k3
@@ -1201,8 +1267,8 @@ fn solve_and_judge(
         });
         let mut opts = cfg.solve_options("station config")?;
         let mut fixed = configured_fixes(&opts, image_size);
-        let mut cal = match notify::alive_during(sink, SOLVE_LIMIT, || {
-            crate::calib::solve(&fit, image_size, &opts)
+        let (mut cal, mut rig_solve) = match notify::alive_during(sink, SOLVE_LIMIT, || {
+            solve_views(spec, &fit, image_size, &opts)
         }) {
             Ok(c) => c,
             Err(e) => {
@@ -1219,9 +1285,9 @@ fn solve_and_judge(
             let (k3, k3_sd) = (k3.value, k3.std_dev);
             opts.fix.k3 = true;
             match notify::alive_during(sink, SOLVE_LIMIT, || {
-                crate::calib::solve(&fit, image_size, &opts)
+                solve_views(spec, &fit, image_size, &opts)
             }) {
-                Ok(c) => {
+                Ok((c, r)) => {
                     let why = format!(
                         "these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}, within {}σ of 0, and 1σ moves the image border by {:.1} px); add poses with the rig near the image corners to estimate it",
                         crate::calib::SIGNIFICANCE_SIGMAS,
@@ -1234,7 +1300,7 @@ fn solve_and_judge(
                         value: 0.0,
                         reason: why,
                     });
-                    cal = c;
+                    (cal, rig_solve) = (c, r);
                 }
                 Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
             }
@@ -1255,12 +1321,12 @@ fn solve_and_judge(
             .then(|| {
                 notify::alive_during(sink, SOLVE_LIMIT, || {
                     let views = crate::detect::undistorted::refit_recorded(&recorded, &cal.camera)?;
-                    let c = crate::calib::solve(&views[..n_fit], image_size, &opts).ok()?;
+                    let c = solve_views(spec, &views[..n_fit], image_size, &opts).ok()?;
                     Some((views, c))
                 })
             })
             .flatten();
-        if let Some((views, c)) = refitted
+        if let Some((views, (c, r))) = refitted
             && c.rms_px < cal.rms_px
         {
             tracing::info!(
@@ -1269,6 +1335,7 @@ fn solve_and_judge(
                 "corners refitted with the lens"
             );
             (fit, held, cal) = (views[..n_fit].to_vec(), views[n_fit..].to_vec(), c);
+            rig_solve = r;
             (accepted.iter_mut().zip(views)).for_each(|(a, v)| a.0 = v);
             let refitted = observations_json(&accepted)?;
             finish_write(&mut writing)?;
@@ -1276,6 +1343,33 @@ fn solve_and_judge(
             writing = Some(scope.spawn(move || write_file(path, &refitted)));
         }
         laps.lap("lens refit and its solve");
+        // With the rig refined, the held-out views (and the fitted ones, for their residuals) are
+        // placed on the refined rig.
+        match rig_solve {
+            Some(Ok(refined)) => {
+                notes.push(format!(
+                    "rig refined jointly with the camera (reference face '{}'): {}",
+                    spec.rig.faces[refined.reference_face].name,
+                    (refined.faces.iter())
+                        .map(crate::calib::FaceCorrection::describe)
+                        .collect::<Vec<_>>()
+                        .join("; ")
+                ));
+                let placed = place_on(&fit, spec.rig, &refined.rig)
+                    .and_then(|f| Ok((f, place_on(&held, spec.rig, &refined.rig)?)));
+                match placed {
+                    Ok((f, h)) => (fit, held) = (f, h),
+                    Err(e) => tracing::warn!(error = %e, "views not placed on the refined rig"),
+                }
+            }
+            Some(Err(e)) => {
+                tracing::warn!(error = %e, "rig not refined");
+                notes.push(format!(
+                    "rig not refined ({e}); the rig file's faces were used"
+                ));
+            }
+            None => {}
+        }
         let mut held_out = Vec::new();
         let mut held_failures = Vec::new();
         for v in &held {
@@ -1309,6 +1403,18 @@ fn solve_and_judge(
             views: &result.views,
         });
         result.verdict.fixed = fixed;
+        if let Some(missing) = missing_without_tilt(spec, &poses, &cal, &fit, &coverage) {
+            tracing::info!(%missing, "placements a tilt axis would add");
+            if let Some(c) =
+                (result.verdict.checks.iter_mut()).find(|c| c.name == "coverage" && !c.pass)
+            {
+                c.hint = Some(match c.hint.take() {
+                    Some(h) => format!("{h}; {missing}"),
+                    None => missing.clone(),
+                });
+            }
+            notes.push(missing);
+        }
         for u in crate::calib::undetermined_parameters(&cal) {
             notes.push(format!(
                 "{} is not determined by these views ({:.4} ± {:.4}; 1σ moves the image border by {:.1} px)",
@@ -1322,6 +1428,117 @@ fn solve_and_judge(
         finish_write(&mut writing)?;
         Ok(result)
     })
+}
+
+/// A solve of the station's views: the camera, and with `solve.refine_rig` the rig refinement
+/// ([`crate::calib::solve_rig`]) whose camera it is — or why the rig could not be refined, the
+/// camera then being the plain solve's with the rig file's faces.
+type Solved = (
+    crate::calib::Calibration,
+    Option<Result<crate::calib::RigCalibration, crate::calib::CalibError>>,
+);
+
+/// Solve `views` with `opts` (see [`Solved`]).
+fn solve_views(
+    spec: &RunSpec<'_>,
+    views: &[View],
+    image_size: [u32; 2],
+    opts: &crate::calib::SolveOptions,
+) -> Result<Solved, crate::calib::CalibError> {
+    if !spec.config.solve.refine_rig {
+        return Ok((crate::calib::solve(views, image_size, opts)?, None));
+    }
+    match refine_rig(spec.rig, views, image_size, opts) {
+        Ok(r) => Ok((r.calibration.clone(), Some(Ok(r)))),
+        Err(e) => Ok((crate::calib::solve(views, image_size, opts)?, Some(Err(e)))),
+    }
+}
+
+/// The camera solved with the rig's faces refined ([`crate::calib::solve_rig`]; model, fixes and
+/// loss as `opts`); an unconverged fit is an error.
+fn refine_rig(
+    rig: &Rig,
+    views: &[View],
+    image_size: [u32; 2],
+    opts: &crate::calib::SolveOptions,
+) -> Result<crate::calib::RigCalibration, crate::calib::CalibError> {
+    use crate::calib::{RigRefineOptions, RigView, Weighting};
+    let mut labelled = (views.iter())
+        .map(|v| RigView::from_view(v, rig))
+        .collect::<Result<Vec<_>, _>>()?;
+    // Corners weighted alike because the detector's σ miss its bias (solve.weighting, issue 29):
+    // then those σ are not the yardstick of a rig that fits either, the faces' residuals are.
+    if opts.weighting == Weighting::Equal {
+        for p in labelled.iter_mut().flat_map(|v| v.points.iter_mut()) {
+            p.sigma_px = None;
+        }
+    }
+    let ropts = RigRefineOptions {
+        solve: opts.clone(),
+        ..RigRefineOptions::default()
+    };
+    let refined = crate::calib::solve_rig(rig, &labelled, image_size, &ropts)?;
+    if !refined.calibration.termination.is_converged() {
+        return Err(crate::calib::CalibError::Degenerate {
+            reason: format!(
+                "the fit with the rig refined did not converge ({})",
+                refined.calibration.termination.as_str()
+            ),
+        });
+    }
+    Ok(refined)
+}
+
+/// `views` (corners of `nominal`) with each corner where `refined` puts it.
+fn place_on(
+    views: &[View],
+    nominal: &Rig,
+    refined: &Rig,
+) -> Result<Vec<View>, crate::calib::CalibError> {
+    (views.iter())
+        .map(|v| crate::calib::RigView::from_view(v, nominal)?.to_view(refined))
+        .collect()
+}
+
+/// On a turntable without a tilt axis: which cells the rig never reached and the tilted placements
+/// that would fill them ([`plan::missing_without_tilt`]), from the solved camera and the fitted
+/// views' poses at their recorded angles. `None` on a two-axis stage, without a turntable, and when
+/// nothing is missing.
+fn missing_without_tilt(
+    spec: &RunSpec<'_>,
+    poses: &[PoseData],
+    cal: &crate::calib::Calibration,
+    fit: &[View],
+    coverage: &Coverage,
+) -> Option<String> {
+    use config::TurntableKind;
+    let t = &spec.config.turntable;
+    if t.has_tilt() || matches!(t.kind, TurntableKind::None) {
+        return None;
+    }
+    let records: Vec<&ViewRecord> = (poses.iter())
+        .filter(|p| p.view.is_some())
+        .map(|p| &p.record)
+        .collect();
+    if records
+        .iter()
+        .any(|r| r.angle_deg.is_none() || r.tilt_deg.is_some())
+    {
+        return None;
+    }
+    let views: Vec<(crate::camera::Pose, f64)> = (fit.iter().zip(&cal.views))
+        .filter_map(|(v, solved)| {
+            let r = records.iter().find(|r| r.name == v.name)?;
+            Some((solved.cam_from_rig, r.angle_deg?))
+        })
+        .collect();
+    let t = &spec.config.turntable;
+    let planner = plan::Planner::for_station(
+        spec.config,
+        spec.rig,
+        Some((t.tilt_min_deg, t.tilt_max_deg)),
+    );
+    plan::missing_without_tilt(&planner, &cal.camera, &views, coverage)
 }
 
 /// Wait for a file being written on a thread of its own (if it still is) and return how it went.

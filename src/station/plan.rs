@@ -35,6 +35,8 @@ use crate::camera::{Camera, DistortionModel, PARAM_NAMES, Pose, idx};
 use crate::render::{RenderSettings, StageGeometry, ground_truth, stage_motion};
 use crate::rig::Rig;
 
+use super::coverage::Coverage;
+
 /// Faces seen more obliquely than this (angle between their normal and the line of sight) are not
 /// counted on: the detector's labelling gets unreliable toward grazing views.
 pub const MAX_OBLIQUITY_DEG: f64 = 70.0;
@@ -123,6 +125,29 @@ pub fn nominal_camera(image_size: [u32; 2]) -> Camera {
 }
 
 impl Planner {
+    /// The planner of a station configured by `cfg`, its stage tilting within `tilt_limits` (none:
+    /// rotation only).
+    pub fn for_station(
+        cfg: &super::StationConfig,
+        rig: &Rig,
+        tilt_limits: Option<(f64, f64)>,
+    ) -> Planner {
+        let (model, fix) = cfg.solve_options("station config").map_or_else(
+            |_| (DistortionModel::Brown5, Fix::default()),
+            |o| (o.model, planning_fix(&o.fix)),
+        );
+        Planner {
+            rig: rig.clone(),
+            geometry: cfg.turntable.geometry(),
+            candidates: grid(cfg.plan.sweep_deg, tilt_limits, cfg.plan.step_deg),
+            model,
+            fix,
+            target_sigma_f_rel: cfg.plan.target_sigma_fx_rel,
+            target_sigma_c_px: cfg.plan.target_sigma_cx_px,
+            min_corners: cfg.qa.min_corners,
+        }
+    }
+
     /// `cam_from_rig` at `pose` for a stage whose (0°, 0°) view is `base`.
     pub fn cam_from_rig(&self, base: &Pose, pose: StagePose) -> Pose {
         let view = base.rotation.inverse() * Vector3::z();
@@ -297,6 +322,130 @@ impl Planner {
     }
 }
 
+/// A stage pose the run did not reach that would put corners into empty coverage cells.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Placement {
+    pub pose: StagePose,
+    /// Where the rig would appear (3×3 division of the image, [`Coverage::region_of`]).
+    pub region: &'static str,
+    /// How many cells still empty before it it would cover.
+    pub cells: usize,
+}
+
+impl Planner {
+    /// The placements missing from `coverage`: greedily, up to `max` candidates that each cover the
+    /// most cells still empty (after the ones before them), at least one cell each. What a station
+    /// without a tilt axis tells the operator it lacks.
+    pub fn missing_placements(
+        &self,
+        camera: &Camera,
+        base: &Pose,
+        coverage: &Coverage,
+        max: usize,
+    ) -> Vec<Placement> {
+        let predicted: Vec<(StagePose, Vec<nalgebra::Vector2<f64>>)> = (self.candidates.iter())
+            .filter_map(|&pose| {
+                let view = self.predict_view(camera, &self.cam_from_rig(base, pose))?;
+                Some((pose, view.points.iter().map(|p| p.uv).collect()))
+            })
+            .collect();
+        let mut coverage = coverage.clone();
+        let mut out = Vec::new();
+        while out.len() < max {
+            let best = (predicted.iter())
+                .map(|(pose, pts)| (pose, pts, coverage.newly_covered(pts)))
+                .filter(|c| c.2 > 0)
+                // most cells; among equals the smaller motion (the first candidate closest to rest)
+                .max_by(|a, b| {
+                    let rest = |p: &StagePose| -(p.rotation_deg.abs() + p.tilt_deg.abs());
+                    (a.2, rest(a.0))
+                        .partial_cmp(&(b.2, rest(b.0)))
+                        .unwrap_or(std::cmp::Ordering::Equal)
+                });
+            let Some((pose, pts, cells)) = best else {
+                break;
+            };
+            let n = pts.len().max(1) as f64;
+            let mean = pts.iter().sum::<nalgebra::Vector2<f64>>() / n;
+            out.push(Placement {
+                pose: *pose,
+                region: coverage.region_of(&mean),
+                cells,
+            });
+            for p in pts {
+                coverage.add(p);
+            }
+        }
+        out
+    }
+}
+
+/// What a station without a tilt axis says it is missing: the empty cells, and the placements (on a
+/// cradle tilted within `tilt_limits`, the rig `geometry` as configured) that would fill them, in
+/// words. `views` are the accepted views' `cam_from_rig` with the turntable angle each was taken at;
+/// `None` when nothing is missing or no view is at hand.
+pub fn missing_without_tilt(
+    planner: &Planner,
+    camera: &Camera,
+    views: &[(Pose, f64)],
+    coverage: &Coverage,
+) -> Option<String> {
+    if coverage.covered() == coverage.total() {
+        return None;
+    }
+    // The view nearest 0° gives the stage's rest pose: there the motion is the identity whatever the
+    // geometry.
+    let (observed, angle) = (views.iter()).min_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))?;
+    let at = StagePose {
+        rotation_deg: *angle,
+        tilt_deg: 0.0,
+    };
+    let base = planner.base_from(observed, at, observed);
+    let placements = planner.missing_placements(camera, &base, coverage, 4);
+    let empty = coverage.total() - coverage.covered();
+    let mut s = format!(
+        "without a tilt axis the rig reached {} of the {} coverage cells ({empty} empty{})",
+        coverage.covered(),
+        coverage.total(),
+        match coverage.empty_regions() {
+            e if e.is_empty() => String::new(),
+            e => format!(": {}", e.join(", ")),
+        }
+    );
+    if placements.is_empty() {
+        s.push_str("; no tilted placement of this rig within the cradle limits would fill them: move the camera or the rig closer");
+        return Some(s);
+    }
+    s.push_str("; the placements missing, on a cradle tilting the table (turntable.tilt) or the cube propped by hand: ");
+    let words: Vec<String> = placements
+        .iter()
+        .map(|p| {
+            let t = p.pose.tilt_deg.round();
+            let tilt = if t.abs() < 0.5 {
+                "level".to_string()
+            } else {
+                format!(
+                    "its top tilted {} by about {:.0}°",
+                    if t < 0.0 {
+                        "toward the camera"
+                    } else {
+                        "away from the camera"
+                    },
+                    t.abs()
+                )
+            };
+            format!(
+                "turned to {:+.0}° with {tilt} ({}, {} empty cell(s))",
+                p.pose.rotation_deg.round(),
+                p.region,
+                p.cells
+            )
+        })
+        .collect();
+    s.push_str(&words.join("; "));
+    Some(s)
+}
+
 /// The model and fixes the planner predicts for: the solve's, with k3 estimated (the plan aims to
 /// determine it).
 pub fn planning_fix(fix: &Fix) -> Fix {
@@ -336,21 +485,8 @@ impl Planning {
             o.fix = planning_fix(&o.fix);
             o
         });
-        let (model, fix) = opts.as_ref().map_or_else(
-            || (DistortionModel::Brown5, Fix::default()),
-            |o| (o.model, o.fix.clone()),
-        );
         let limits = turntable.tilt_limits().map(|(a, b)| (a.0, b.0));
-        let planner = Planner {
-            rig: spec.rig.clone(),
-            geometry: cfg.turntable.geometry(),
-            candidates: grid(cfg.plan.sweep_deg, limits, cfg.plan.step_deg),
-            model,
-            fix,
-            target_sigma_f_rel: cfg.plan.target_sigma_fx_rel,
-            target_sigma_c_px: cfg.plan.target_sigma_cx_px,
-            min_corners: cfg.qa.min_corners,
-        };
+        let planner = Planner::for_station(cfg, spec.rig, limits);
         let camera = nominal_camera(image_size);
         let base = crate::render::default_view(spec.rig, &camera);
         Planning {
@@ -403,6 +539,117 @@ impl Planning {
                 tracing::debug!(error = %e, "planning pose failed; keeping the base estimate")
             }
         }
+    }
+}
+
+/// How far (degrees, on either axis) a hand-placed stage may be from its prompt before the station
+/// asks again.
+pub const PROMPT_TOLERANCE_DEG: f64 = 5.0;
+
+/// The stage pose an operator actually reached, as far as a view tells, when it is not the prompted
+/// one.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Misplaced {
+    /// The pose (within ±20° of the prompt on each axis, 5° steps) that best explains the view.
+    pub looks_like: StagePose,
+    /// Mean distance (px) between the view's corners and where the prompted pose puts them.
+    pub off_px: f64,
+    /// Where the rig appears, and where the prompt wanted it (3×3 division of the image).
+    pub appears: &'static str,
+    pub wanted: &'static str,
+}
+
+impl Planning {
+    /// Whether `view`, taken after the operator confirmed `pose`, shows the rig where that pose puts
+    /// it: `Some` when a pose more than [`PROMPT_TOLERANCE_DEG`] away on an axis explains its
+    /// corners better. Nothing is judged before a view has placed the stage (the first pose).
+    pub fn misplaced(
+        &self,
+        pose: StagePose,
+        view: &View,
+        coverage: &Coverage,
+    ) -> Option<Misplaced> {
+        if self.taken.is_empty() || view.points.is_empty() {
+            return None;
+        }
+        let off = |p: StagePose| -> Option<f64> {
+            let cam_from_rig = self.planner.cam_from_rig(&self.base, p);
+            let mut sum = 0.0;
+            for c in &view.points {
+                let uv = self
+                    .camera
+                    .project_cam(&cam_from_rig.transform(&c.xyz))
+                    .ok()?;
+                sum += (uv - c.uv).norm();
+            }
+            Some(sum / view.points.len() as f64)
+        };
+        let at_prompt = off(pose)?;
+        let mut best = (pose, at_prompt);
+        let steps = [-20.0, -15.0, -10.0, -5.0, 0.0, 5.0, 10.0, 15.0, 20.0];
+        for dr in steps {
+            for dt in steps {
+                let p = StagePose {
+                    rotation_deg: pose.rotation_deg + dr,
+                    tilt_deg: pose.tilt_deg + dt,
+                };
+                if let Some(d) = off(p)
+                    && d < best.1
+                {
+                    best = (p, d);
+                }
+            }
+        }
+        let (looks_like, _) = best;
+        if (looks_like.rotation_deg - pose.rotation_deg).abs() <= PROMPT_TOLERANCE_DEG
+            && (looks_like.tilt_deg - pose.tilt_deg).abs() <= PROMPT_TOLERANCE_DEG
+        {
+            return None;
+        }
+        let mean = |pts: &mut dyn Iterator<Item = nalgebra::Vector2<f64>>| {
+            let (s, n) = pts.fold((nalgebra::Vector2::zeros(), 0usize), |(s, n), p| {
+                (s + p, n + 1)
+            });
+            s / n.max(1) as f64
+        };
+        let seen = mean(&mut view.points.iter().map(|c| c.uv));
+        let cam_from_rig = self.planner.cam_from_rig(&self.base, pose);
+        let wanted = mean(&mut (view.points.iter()).filter_map(|c| {
+            self.camera
+                .project_cam(&cam_from_rig.transform(&c.xyz))
+                .ok()
+        }));
+        Some(Misplaced {
+            looks_like,
+            off_px: at_prompt,
+            appears: coverage.region_of(&seen),
+            wanted: coverage.region_of(&wanted),
+        })
+    }
+}
+
+impl Misplaced {
+    /// In words, for the operator's next prompt and the rejected view's reason.
+    pub fn words(&self, tilt: bool) -> String {
+        let mut s = format!(
+            "the rig is not where the prompt puts it (its corners are {:.0} px off; it looks turned to about {:+.0}°",
+            self.off_px,
+            self.looks_like.rotation_deg.round()
+        );
+        if tilt {
+            s.push_str(&format!(
+                " with the cradle at about {:+.0}°",
+                self.looks_like.tilt_deg.round()
+            ));
+        }
+        s.push(')');
+        if self.appears != self.wanted {
+            s.push_str(&format!(
+                ": it appears in the {} of the image, the pose wants it in the {}",
+                self.appears, self.wanted
+            ));
+        }
+        s
     }
 }
 
@@ -486,6 +733,93 @@ mod tests {
         assert_eq!(
             instruction(p, false, None),
             "turn the turntable to the +23° mark; hold it still, then confirm"
+        );
+    }
+
+    /// A one-axis sweep leaves cells empty; the placements named as missing are tilted and, rendered
+    /// with the true camera (ground truth), put corners into cells the sweep left empty.
+    #[test]
+    fn missing_placements_are_tilted_and_fill_the_empty_cells() {
+        let rig = Rig::from_toml_str(
+            include_str!("../../fixtures/rigs/cube_outside.toml"),
+            "cube_outside.toml",
+        )
+        .unwrap()
+        .0;
+        let truth = Camera::pinhole([1280, 960], 1100.0, 1100.0, 641.0, 478.0)
+            .with_distortion(DistortionModel::Brown5, &[-0.2, 0.05, 0.0, 0.0, 0.0]);
+        let base = crate::render::default_view(&rig, &truth);
+        let planner = Planner {
+            rig: rig.clone(),
+            geometry: StageGeometry {
+                rig_offset_mm: 300.0,
+                tilt_pivot_mm: 300.0,
+            },
+            candidates: grid(60.0, Some((-30.0, 30.0)), 10.0),
+            model: DistortionModel::Brown5,
+            fix: Fix::default(),
+            target_sigma_f_rel: 2e-4,
+            target_sigma_c_px: 0.5,
+            min_corners: 20,
+        };
+        let corners_at = |pose: StagePose| -> Vec<nalgebra::Vector2<f64>> {
+            let p = planner.cam_from_rig(&base, pose);
+            let gt = ground_truth(&rig, &truth, &p, &RenderSettings::default(), 0);
+            gt.visible().filter_map(|c| c.uv.map(Into::into)).collect()
+        };
+        let mut coverage = Coverage::new(1280, 960, [8, 6]);
+        for r in [-30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0] {
+            for uv in corners_at(StagePose {
+                rotation_deg: r,
+                tilt_deg: 0.0,
+            }) {
+                coverage.add(&uv);
+            }
+        }
+        let before = coverage.covered();
+        assert!(
+            before < coverage.total(),
+            "the level sweep left no cell empty"
+        );
+        let missing = planner.missing_placements(&truth, &base, &coverage, 4);
+        assert!(!missing.is_empty());
+        assert!(
+            missing.iter().all(|m| m.pose.tilt_deg != 0.0),
+            "{missing:?}"
+        );
+        let mut after = coverage.clone();
+        for m in &missing {
+            for uv in corners_at(m.pose) {
+                after.add(&uv);
+            }
+        }
+        let claimed: usize = missing.iter().map(|m| m.cells).sum();
+        let filled = after.covered() - before;
+        assert!(
+            filled + 2 >= claimed && filled >= 4,
+            "{missing:?}: claimed {claimed} cells, ground truth fills {filled}"
+        );
+        let text = missing_without_tilt(
+            &planner,
+            &truth,
+            &[(
+                planner.cam_from_rig(
+                    &base,
+                    StagePose {
+                        rotation_deg: 0.0,
+                        tilt_deg: 0.0,
+                    },
+                ),
+                0.0,
+            )],
+            &coverage,
+        )
+        .unwrap();
+        assert!(
+            text.starts_with(&format!(
+                "without a tilt axis the rig reached {before} of the 48"
+            )) && text.contains("its top tilted"),
+            "{text}"
         );
     }
 
