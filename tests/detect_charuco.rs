@@ -6,9 +6,13 @@
 //! are skipped with a message, unless `CUBECAL_REQUIRE_TOOLS=1` makes that a failure.
 #![allow(clippy::print_stderr)]
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+#[path = "support/aruco.rs"]
+mod aruco;
 
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use aruco::{python_with_aruco, run_peer};
 use cubecal::detect::score::{EvalSet, score};
 use cubecal::detect::{CornerFinder, detect};
 use cubecal::render::{ground_truth, render};
@@ -18,32 +22,6 @@ use cubecal::rig::charuco::{DICTIONARY_NAMES, Dictionary, opencv_corner_id};
 fn rig_text() -> String {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/rigs/charuco_cube.toml");
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
-
-fn python_with_aruco() -> Option<String> {
-    let found = [
-        std::env::var("CUBECAL_PYTHON").ok(),
-        Some("/usr/bin/python3".to_string()),
-        Some("python3".to_string()),
-    ]
-    .into_iter()
-    .flatten()
-    .find(|py| {
-        Command::new(py)
-            .args(["-c", "import cv2; cv2.aruco.getPredefinedDictionary"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .status()
-            .is_ok_and(|s| s.success())
-    });
-    if found.is_none() {
-        assert!(
-            std::env::var("CUBECAL_REQUIRE_TOOLS").map_or(true, |v| v != "1"),
-            "CUBECAL_REQUIRE_TOOLS=1 but no python3 with cv2.aruco"
-        );
-        eprintln!("skipped: no python3 with cv2.aruco (run deploy/install-test-tools.sh)");
-    }
-    found
 }
 
 /// Every marker of the 12 dictionaries, drawn by OpenCV one pixel per cell, against our table.
@@ -177,20 +155,10 @@ fn charuco_cube_renders_label_right_and_beat_opencv_rms() {
     let spec = tmp.path().join("boards.json");
     std::fs::write(&spec, serde_json::json!({"boards": boards}).to_string())
         .unwrap_or_else(|e| panic!("{e}"));
-    let peer = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/charuco_opencv.py");
-    let out = Command::new(&py)
-        .arg(&peer)
-        .arg(&spec)
-        .args(frames.iter().map(|f| &f.png))
-        .output()
-        .unwrap_or_else(|e| panic!("{py}: {e}"));
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let mut args = vec![spec.into_os_string()];
+    args.extend(frames.iter().map(|f| f.png.clone().into_os_string()));
     let cv: serde_json::Value =
-        serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{e}"));
+        serde_json::from_slice(&run_peer(&py, &args)).unwrap_or_else(|e| panic!("{e}"));
     let (mut cv_sq, mut cv_n) = (0.0, 0usize);
     let mut cv_per_frame = Vec::new();
     for (f, im) in frames
@@ -280,21 +248,6 @@ fn svg_corner00(svg: &str) -> Option<[f64; 2]> {
         }
     }
     None
-}
-
-fn run_peer(py: &str, args: &[&std::ffi::OsStr]) -> Vec<u8> {
-    let peer = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/charuco_opencv.py");
-    let out = Command::new(py)
-        .arg(&peer)
-        .args(args)
-        .output()
-        .unwrap_or_else(|e| panic!("{py}: {e}"));
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out.stdout
 }
 
 /// cubecal's labels of one face in an image: OpenCV corner id → position.

@@ -14,10 +14,14 @@
 //! without it they are skipped with a message, unless `CUBECAL_REQUIRE_TOOLS=1`.
 #![allow(clippy::print_stderr)]
 
-use std::collections::HashMap;
-use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+#[path = "support/aruco.rs"]
+mod aruco;
 
+use std::collections::HashMap;
+use std::ffi::OsStr;
+use std::path::{Path, PathBuf};
+
+use aruco::{python_with_aruco, run_peer};
 use cubecal::calib::{self, Correspondence, SolveOptions, View};
 use cubecal::camera::DistortionModel;
 use cubecal::detect::{CornerFinder, detect};
@@ -27,32 +31,6 @@ use nalgebra::{Vector2, Vector3};
 
 fn manifest() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
-}
-
-fn python_with_aruco() -> Option<String> {
-    let found = [
-        std::env::var("CUBECAL_PYTHON").ok(),
-        Some("/usr/bin/python3".to_string()),
-        Some("python3".to_string()),
-    ]
-    .into_iter()
-    .flatten()
-    .find(|py| {
-        Command::new(py)
-            .args(["-c", "import cv2; cv2.aruco.getPredefinedDictionary"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .status()
-            .is_ok_and(|s| s.success())
-    });
-    if found.is_none() {
-        assert!(
-            std::env::var("CUBECAL_REQUIRE_TOOLS").map_or(true, |v| v != "1"),
-            "CUBECAL_REQUIRE_TOOLS=1 but no python3 with cv2.aruco"
-        );
-        eprintln!("skipped: no python3 with cv2.aruco (run deploy/install-test-tools.sh)");
-    }
-    found
 }
 
 fn photos(set: &str) -> Vec<PathBuf> {
@@ -113,19 +91,10 @@ fn opencv(py: &str, rig: &Rig, photos: &[PathBuf], dir: &Path) -> (String, Label
     let spec = dir.join("boards.json");
     std::fs::write(&spec, serde_json::json!({"boards": boards}).to_string())
         .unwrap_or_else(|e| panic!("{e}"));
-    let out = Command::new(py)
-        .arg(manifest().join("tests/peers/charuco_opencv.py"))
-        .arg(&spec)
-        .args(photos)
-        .output()
-        .unwrap_or_else(|e| panic!("{py}: {e}"));
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let mut args = vec![spec.into_os_string()];
+    args.extend(photos.iter().map(|p| p.clone().into_os_string()));
     let v: serde_json::Value =
-        serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{e}"));
+        serde_json::from_slice(&run_peer(py, &args)).unwrap_or_else(|e| panic!("{e}"));
     let labels = v["images"]
         .as_array()
         .into_iter()
@@ -254,19 +223,11 @@ fn pycalib_wide_board_labels_and_calibration_agree_with_opencv() {
         .to_string(),
     )
     .unwrap_or_else(|e| panic!("{e}"));
-    let out = Command::new(&py)
-        .arg(manifest().join("tests/peers/charuco_opencv.py"))
-        .arg("--calibrate")
-        .arg(&spec)
-        .output()
-        .unwrap_or_else(|e| panic!("{py}: {e}"));
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let cvcal: serde_json::Value =
-        serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{e}"));
+    let cvcal: serde_json::Value = serde_json::from_slice(&run_peer(
+        &py,
+        &[OsStr::new("--calibrate"), spec.as_os_str()],
+    ))
+    .unwrap_or_else(|e| panic!("{e}"));
     let cam = &cal.camera;
     let ours4 = [cam.fx(), cam.fy(), cam.cx(), cam.cy()];
     for (i, name) in ["fx", "fy", "cx", "cy"].iter().enumerate() {
