@@ -79,6 +79,37 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
+/// Fewest points off a view's main plane for the view to be initialised as 3D (by the DLT). With
+/// fewer, the DLT is ill-posed — its off-plane information rests on a few points, and a stray
+/// corner labelled on a second face beside a whole first one (22 + 1 on a ChArUco cube photo)
+/// made it return a projection whose pose the refinement could not recover — and the view is
+/// initialised from the homography of its main plane instead (the strays still enter the
+/// refinement). Six is the DLT's own minimum.
+pub const MIN_POINTS_OFF_PLANE: usize = 6;
+
+/// When all but fewer than [`MIN_POINTS_OFF_PLANE`] of `x3` lie on one plane: the indices of those
+/// on it. Found by trimming: the point farthest from the least-squares plane of those left is
+/// dropped until the rest are coplanar ([`COPLANAR_TOLERANCE`]). A few strays pull the
+/// least-squares plane less than they lie off it, so they go first; a view spread over two faces
+/// needs many drops and is reported as 3D (`None`).
+fn plane_with_strays(x3: &[Vector3<f64>]) -> Option<Vec<usize>> {
+    let mut kept: Vec<usize> = (0..x3.len()).collect();
+    for _ in 0..MIN_POINTS_OFF_PLANE {
+        let pts: Vec<Vector3<f64>> = kept.iter().map(|&i| x3[i]).collect();
+        if relative_thickness(&pts) < COPLANAR_TOLERANCE {
+            return (kept.len() >= 4).then_some(kept);
+        }
+        let frame = plane_frame(&pts);
+        let farthest = (0..kept.len()).max_by(|&a, &b| {
+            let da = frame.transform(&pts[a]).z.abs();
+            let db = frame.transform(&pts[b]).z.abs();
+            da.total_cmp(&db)
+        })?;
+        kept.remove(farthest);
+    }
+    None
+}
+
 /// Initial intrinsics (distortion zero, model as given) and per-view `cam_from_rig`.
 pub fn initialise(
     views: &[View],
@@ -90,12 +121,14 @@ pub fn initialise(
     for v in views {
         let x3: Vec<Vector3<f64>> = v.points.iter().map(|c| c.xyz).collect();
         let x2: Vec<Vector2<f64>> = v.points.iter().map(|c| c.uv).collect();
-        let init = if relative_thickness(&x3) >= COPLANAR_TOLERANCE {
-            let p = dlt(&x3, &x2).map_err(|e| e.in_view(&v.name))?;
-            let (k, _) = decompose_projection(&p).map_err(|e| e.in_view(&v.name))?;
-            ks.push(k);
-            ViewInit::Projective(p)
+        let planar = if relative_thickness(&x3) >= COPLANAR_TOLERANCE {
+            plane_with_strays(&x3)
         } else {
+            Some((0..x3.len()).collect())
+        };
+        let init = if let Some(on_plane) = planar {
+            let x3: Vec<Vector3<f64>> = on_plane.iter().map(|&i| x3[i]).collect();
+            let x2: Vec<Vector2<f64>> = on_plane.iter().map(|&i| x2[i]).collect();
             let plane_from_rig = plane_frame(&x3);
             let plane: Vec<Vector2<f64>> = x3
                 .iter()
@@ -106,6 +139,11 @@ pub fn initialise(
                 .collect();
             let h = homography(&plane, &x2).map_err(|e| e.in_view(&v.name))?;
             ViewInit::Planar { h, plane_from_rig }
+        } else {
+            let p = dlt(&x3, &x2).map_err(|e| e.in_view(&v.name))?;
+            let (k, _) = decompose_projection(&p).map_err(|e| e.in_view(&v.name))?;
+            ks.push(k);
+            ViewInit::Projective(p)
         };
         inits.push(init);
     }
@@ -217,4 +255,88 @@ pub fn initialise(
         poses,
         method,
     })
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::calib::Correspondence;
+    use nalgebra::Rotation3;
+
+    /// A 3×3-face corner of a cube (three faces of 5 × 4 points, 30 mm apart, from 20 mm).
+    fn cube_points() -> Vec<Vector3<f64>> {
+        let mut pts = Vec::new();
+        for i in 0..5 {
+            for j in 0..4 {
+                let (a, b) = (20.0 + 30.0 * f64::from(i), 20.0 + 30.0 * f64::from(j));
+                pts.push(Vector3::new(a, b, 0.0));
+                pts.push(Vector3::new(0.0, a, b));
+                pts.push(Vector3::new(b, 0.0, a));
+            }
+        }
+        pts
+    }
+
+    fn view(name: &str, camera: &Camera, pose: &Pose, xyz: &[Vector3<f64>]) -> View {
+        View {
+            name: name.into(),
+            points: xyz
+                .iter()
+                .map(|x| Correspondence {
+                    xyz: *x,
+                    uv: camera.project(pose, x).unwrap_or_default(),
+                    cov: None,
+                })
+                .collect(),
+        }
+    }
+
+    /// A view whose corners are a whole face and one stray corner of another face (as a ChArUco cube
+    /// photo gave: 22 + 1) is initialised from its face's homography, not by a DLT that its one
+    /// off-plane point cannot constrain: its initial pose is the true one (noise-free points).
+    #[test]
+    fn a_face_with_one_stray_corner_is_initialised_as_a_plane() {
+        let camera = Camera::pinhole([1280, 960], 900.0, 900.0, 640.0, 480.0);
+        let pose = |rx: f64, ry: f64, rz: f64| {
+            let rotation = Rotation3::from_euler_angles(rx, ry, rz);
+            let centre = rotation.inverse() * Vector3::new(0.0, 0.0, -700.0);
+            Pose {
+                rotation,
+                translation: -(rotation * (centre - Vector3::new(60.0, 60.0, 60.0))),
+            }
+        };
+        let cube = cube_points();
+        let poses = [
+            pose(2.5, 0.4, 0.3),
+            pose(2.3, -0.5, -0.2),
+            pose(2.6, 0.2, 0.9),
+        ];
+        // Third view: the face z = 0 (20 points) and the first point of the face x = 0.
+        let mut face: Vec<Vector3<f64>> = cube.iter().filter(|p| p.z == 0.0).copied().collect();
+        face.push(cube[1]);
+        let views = [
+            view("a", &camera, &poses[0], &cube),
+            view("b", &camera, &poses[1], &cube),
+            view("face and stray", &camera, &poses[2], &face),
+        ];
+        for (v, p) in views.iter().zip(&poses) {
+            assert!(
+                v.points.iter().all(|c| p.transform(&c.xyz).z > 0.0),
+                "test geometry: {} sees its points",
+                v.name
+            );
+        }
+        let init = initialise(&views, camera.image_size, DistortionModel::Pinhole).unwrap();
+        assert_eq!(init.method, InitMethod::Dlt);
+        let got = &init.poses[2];
+        let angle = (got.rotation.matrix().transpose() * poses[2].rotation.matrix()
+            - Matrix3::identity())
+        .norm();
+        let shift = (got.centre() - poses[2].centre()).norm();
+        assert!(
+            angle < 1e-6 && shift < 1e-3,
+            "stray view's initial pose off by {angle} rad, {shift} mm"
+        );
+    }
 }
