@@ -122,6 +122,12 @@ fn main() -> anyhow::Result<()> {
     let mut kept = Vec::new();
     let mut all = Vec::new();
     let mut times = Vec::new();
+    // Mean error along each face's far direction (+ away from the camera, in the image) and across
+    // it, per angle band: [sum along, sum across, count] (`FAR=1`).
+    let far = std::env::var_os("FAR").is_some();
+    let mut far_sums = [[0.0_f64; 3]; 5];
+    let mut scale_sums = [[0.0_f64; 4]; 5];
+    let mut border_sums = [[0.0_f64; 5]; 5];
     for (k, pose) in poses.iter().enumerate() {
         let (img, truth) = cached_frame(&dir, &rig, &camera, pose, &settings, k as u64)?;
         let t = Instant::now();
@@ -156,6 +162,53 @@ fn main() -> anyhow::Result<()> {
                 println!("frame {k:3}   rejected: {}", r.reason);
             }
         }
+        if far {
+            for s in scores.iter().filter(|s| s.found) {
+                let Some(d) = far_direction(&rig, &camera, pose, s.face) else {
+                    continue;
+                };
+                let band = BANDS
+                    .iter()
+                    .position(|&(a, b)| (a..b).contains(&s.angle_deg))
+                    .unwrap_or(BANDS.len() - 1);
+                let f = &rig.faces[s.face];
+                let border = |&(r, c): &(usize, usize)| {
+                    r == 0 || c == 0 || r + 1 == f.rows || c + 1 == f.cols
+                };
+                for ((o, t), l) in s.offsets.iter().zip(&s.truth_uv).zip(&s.labels) {
+                    // Border corners: the mean error towards the face's middle.
+                    if border(l) {
+                        let inward = (s.truth_uv.iter().sum::<nalgebra::Vector2<f64>>()
+                            / s.truth_uv.len() as f64
+                            - t)
+                            .normalize();
+                        border_sums[band][0] += o.dot(&inward);
+                        border_sums[band][1] += o.norm_squared();
+                        border_sums[band][2] += 1.0;
+                    } else {
+                        border_sums[band][3] += o.norm_squared();
+                        border_sums[band][4] += 1.0;
+                    }
+                }
+                for o in &s.offsets {
+                    far_sums[band][0] += o.dot(&d);
+                    far_sums[band][1] += o.x * -d.y + o.y * d.x;
+                    far_sums[band][2] += 1.0;
+                }
+                // The face's scale error: least-squares s in offset ≈ s·(uv − centre), split
+                // into the far direction and across it.
+                let c = s.truth_uv.iter().sum::<nalgebra::Vector2<f64>>()
+                    / s.truth_uv.len().max(1) as f64;
+                let e = nalgebra::Vector2::new(-d.y, d.x);
+                for (o, t) in s.offsets.iter().zip(&s.truth_uv) {
+                    let r = t - c;
+                    scale_sums[band][0] += o.dot(&d) * r.dot(&d);
+                    scale_sums[band][1] += r.dot(&d).powi(2);
+                    scale_sums[band][2] += o.dot(&e) * r.dot(&e);
+                    scale_sums[band][3] += r.dot(&e).powi(2);
+                }
+            }
+        }
         all.extend(scores);
         if rerefine {
             kept.push((img, det, truth));
@@ -174,14 +227,29 @@ fn main() -> anyhow::Result<()> {
         "  faces < 75°:             {}",
         Summary::of(&all, 0.0, 75.0)
     );
-    for (a, b) in [
-        (0.0, 45.0),
-        (45.0, 60.0),
-        (60.0, 75.0),
-        (75.0, 80.0),
-        (80.0, 90.1),
-    ] {
+    for (a, b) in BANDS {
         println!("  {a:2}–{b:2}°: {}", Summary::of(&all, a, b));
+    }
+    if far {
+        for (((a, b), [along, across, n]), [sa, ra, sc, rc]) in
+            BANDS.iter().zip(far_sums).zip(scale_sums)
+        {
+            println!(
+                "  {a:2}–{b:2}°: mean error along the far direction {:+.4} px, across {:+.4} px ({n} corners); scale error along {:+.2e}, across {:+.2e}",
+                along / n.max(1.0),
+                across / n.max(1.0),
+                sa / ra.max(1e-12),
+                sc / rc.max(1e-12)
+            );
+        }
+        for ((a, b), [inward, sq_b, n_b, sq_i, n_i]) in BANDS.iter().zip(border_sums) {
+            println!(
+                "  {a:2}–{b:2}°: border corners mean error inwards {:+.4} px, RMS {:.4} px ({n_b}); inner corners RMS {:.4} px ({n_i})",
+                inward / n_b.max(1.0),
+                (sq_b / n_b.max(1.0)).sqrt(),
+                (sq_i / n_i.max(1.0)).sqrt()
+            );
+        }
     }
     print_bias(&all, &camera);
     let partial: Vec<_> = all.iter().filter(|s| !s.fully_visible).collect();
@@ -208,6 +276,35 @@ fn main() -> anyhow::Result<()> {
         rerefine_report(&rig, &camera, &kept)?;
     }
     Ok(())
+}
+
+/// The angle bands of the summary (degrees from frontal).
+const BANDS: [(f64, f64); 5] = [
+    (0.0, 45.0),
+    (45.0, 60.0),
+    (60.0, 75.0),
+    (75.0, 80.0),
+    (80.0, 90.1),
+];
+
+/// The image direction (unit) in which face `face` recedes from the camera at its centre: the
+/// projection of the in-plane direction along which the depth grows fastest.
+fn far_direction(
+    rig: &Rig,
+    camera: &Camera,
+    pose: &Pose,
+    face: usize,
+) -> Option<nalgebra::Vector2<f64>> {
+    let f = &rig.faces[face];
+    let mid = (f.corner_xyz(0, 0) + f.corner_xyz(f.rows - 1, f.cols - 1)) / 2.0;
+    let n = pose.rotation * f.normal();
+    let x = pose.transform(&mid);
+    let v = x.normalize();
+    let t = (v - n * v.dot(&n)).try_normalize(1e-9)?;
+    let eps = 0.01 * f.square_mm;
+    let a = camera.project_cam(&(x - t * eps)).ok()?;
+    let b = camera.project_cam(&(x + t * eps)).ok()?;
+    (b - a).try_normalize(1e-12)
 }
 
 type Kept = (

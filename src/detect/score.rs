@@ -188,6 +188,8 @@ pub struct FaceScore {
     pub offsets: Vec<Vector2<f64>>,
     /// True positions of the same corners.
     pub truth_uv: Vec<Vector2<f64>>,
+    /// (row, col) of the same corners.
+    pub labels: Vec<(usize, usize)>,
 }
 
 /// Score one frame's detection.
@@ -222,6 +224,7 @@ pub fn score(rig: &Rig, truth: &GroundTruth, det: &FrameDetection) -> Vec<FaceSc
                 sigmas: Vec::new(),
                 offsets: Vec::new(),
                 truth_uv: Vec::new(),
+                labels: Vec::new(),
             };
             for d in det.faces.iter().filter(|d| d.face == fi) {
                 s.found = true;
@@ -238,6 +241,7 @@ pub fn score(rig: &Rig, truth: &GroundTruth, det: &FrameDetection) -> Vec<FaceSc
                                 let t = Vector2::new(t[0], t[1]);
                                 s.offsets.push(c.uv - t);
                                 s.truth_uv.push(t);
+                                s.labels.push((c.row, c.col));
                             }
                         }
                         None => s.mislabelled += 1,
