@@ -49,11 +49,30 @@ fn main() {
     if let Some(ss) = std::env::var("SS").ok().and_then(|s| s.parse().ok()) {
         settings.supersample = ss;
     }
-    let poses = set.poses(&rig, n_views);
-    let radiance: Vec<_> = poses
-        .iter()
-        .map(|p| render_radiance(&rig, &camera, p, &settings).unwrap())
-        .collect();
+    // `POOL=P`: each realisation sees `VIEWS` poses drawn anew from a pool of P (rendered once), so
+    // that the corners' noise-free errors, fixed for a given pose, vary between realisations as
+    // they do between one user's calibration and the next; without it every realisation sees the
+    // same `VIEWS` poses and the coverage is conditional on their one draw of those errors.
+    let pool: Option<usize> = std::env::var("POOL").ok().and_then(|s| s.parse().ok());
+    let poses = set.poses(&rig, pool.unwrap_or(n_views).max(n_views));
+    let t0 = std::time::Instant::now();
+    let radiance: Vec<_> = cubecal::render::parallel_map(poses.len(), |k| {
+        render_radiance(&rig, &camera, &poses[k], &settings).unwrap()
+    });
+    println!(
+        "rendered {} poses in {:.1} s",
+        poses.len(),
+        t0.elapsed().as_secs_f64()
+    );
+    let draw = |r: usize| -> Vec<usize> {
+        use rand::{SeedableRng, seq::SliceRandom};
+        let mut all: Vec<usize> = (0..poses.len()).collect();
+        if pool.is_some() {
+            all.shuffle(&mut rand_chacha::ChaCha8Rng::seed_from_u64(r as u64));
+        }
+        all.truncate(n_views);
+        all
+    };
     let mut finder = CornerFinder::new().unwrap();
     let mut z: Vec<[f64; 5]> = Vec::new();
     let mut err: Vec<[f64; 5]> = Vec::new();
@@ -66,16 +85,21 @@ fn main() {
     let mut last_views: Vec<(usize, RigView)> = Vec::new();
     for r in 0..n {
         let mut det_sigma = Vec::new();
-        let views: Vec<RigView> = radiance
+        let chosen = draw(r);
+        let views: Vec<RigView> = chosen
             .iter()
-            .enumerate()
-            .map(|(k, rad)| {
-                let img = finish(rad, &camera, &settings, (1000 * (r + 1) + k) as u64);
+            .map(|&k| {
+                let img = finish(
+                    &radiance[k],
+                    &camera,
+                    &settings,
+                    (1000 * (r + 1) + k) as u64,
+                );
                 let det = detect(&mut finder, &img, &rig).unwrap();
                 det.to_rig_view(&format!("r{r}v{k}"))
             })
             .collect();
-        for (k, v) in views.iter().enumerate() {
+        for (&k, v) in chosen.iter().zip(&views) {
             for p in &v.points {
                 let x = rig
                     .corner_xyz(p.corner.face, p.corner.row, p.corner.col)
@@ -90,11 +114,11 @@ fn main() {
                 }
             }
         }
-        last_views = views
+        last_views = chosen
             .iter()
-            .enumerate()
+            .zip(&views)
             .filter(|(_, v)| !v.points.is_empty())
-            .map(|(k, v)| (k, v.clone()))
+            .map(|(&k, v)| (k, v.clone()))
             .collect();
         let views: Vec<RigView> = views.into_iter().filter(|v| !v.points.is_empty()).collect();
         views
@@ -155,7 +179,8 @@ fn main() {
     }
     let m = z.len() as f64;
     println!(
-        "{set:?}, {n_views} views, {} realisations, {}:",
+        "{set:?}, {n_views} views{}, {} realisations, {}:",
+        pool.map_or(String::new(), |p| format!(" drawn from {p} poses")),
         z.len(),
         if refine {
             "rig refined (σ inflated for neighbour correlation)"
