@@ -7,7 +7,9 @@
 //! ```
 //! `exact` (the default) solves with each corner weighted by its own covariance from the detector's
 //! fit (issue 29); `equal` weights every corner alike (the solve before issue 29).
-//! `SET` is `realistic` or `hard` ([`EvalSet`]); `SS=n` renders with n×n supersampling. Prints per parameter: coverage of ±2σ, mean and
+//! `SET` is `realistic` or `hard` ([`EvalSet`]); `SS=n` renders with n×n supersampling; `POOL=P`
+//! draws each realisation's views from P poses; `REFIT=n` fits the corners again through the solved
+//! lens n times before the final solve, as `cubecal calibrate` does. Prints per parameter: coverage of ±2σ, mean and
 //! standard deviation of the z-scores `(estimate − truth)/σ` (mean ≠ 0: a bias; std > 1: σ too small),
 //! the empirical spread of the estimates against the mean reported σ, and the fit's noise estimate
 //! against the detector's own per-corner σ.
@@ -15,7 +17,7 @@
 
 use cubecal::calib::{self, RigRefineOptions, RigView, SolveOptions};
 use cubecal::detect::score::EvalSet;
-use cubecal::detect::{CornerFinder, detect};
+use cubecal::detect::{CornerFinder, detect, refine_with_camera};
 use cubecal::render::{finish, render_radiance};
 use cubecal::rig::{CornerId, Rig};
 use nalgebra::Vector2;
@@ -54,6 +56,10 @@ fn main() {
     // they do between one user's calibration and the next; without it every realisation sees the
     // same `VIEWS` poses and the coverage is conditional on their one draw of those errors.
     let pool: Option<usize> = std::env::var("POOL").ok().and_then(|s| s.parse().ok());
+    let refit_rounds: usize = std::env::var("REFIT")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
     let poses = set.poses(&rig, pool.unwrap_or(n_views).max(n_views));
     let t0 = std::time::Instant::now();
     let radiance: Vec<_> = cubecal::render::parallel_map(poses.len(), |k| {
@@ -86,7 +92,7 @@ fn main() {
     for r in 0..n {
         let mut det_sigma = Vec::new();
         let chosen = draw(r);
-        let views: Vec<RigView> = chosen
+        let mut frames: Vec<_> = chosen
             .iter()
             .map(|&k| {
                 let img = finish(
@@ -96,8 +102,28 @@ fn main() {
                     (1000 * (r + 1) + k) as u64,
                 );
                 let det = detect(&mut finder, &img, &rig).unwrap();
-                det.to_rig_view(&format!("r{r}v{k}"))
+                (img, det)
             })
+            .collect();
+        // `REFIT=n`: as a calibration run does, the corners fitted again through the solved lens
+        // (n rounds of solve, refit).
+        for _ in 0..refit_rounds {
+            let v: Vec<_> = frames
+                .iter()
+                .filter(|(_, d)| !d.faces.is_empty())
+                .map(|(_, d)| d.to_view("refit"))
+                .collect();
+            let Ok(cal) = calib::solve(&v, camera.image_size, &SolveOptions::default()) else {
+                break;
+            };
+            for (img, det) in &mut frames {
+                refine_with_camera(img, det, &cal.camera).unwrap();
+            }
+        }
+        let views: Vec<RigView> = chosen
+            .iter()
+            .zip(&frames)
+            .map(|(&k, (_, det))| det.to_rig_view(&format!("r{r}v{k}")))
             .collect();
         for (&k, v) in chosen.iter().zip(&views) {
             for p in &v.points {
@@ -179,8 +205,13 @@ fn main() {
     }
     let m = z.len() as f64;
     println!(
-        "{set:?}, {n_views} views{}, {} realisations, {}:",
+        "{set:?}, {n_views} views{}{}, {} realisations, {}:",
         pool.map_or(String::new(), |p| format!(" drawn from {p} poses")),
+        if refit_rounds > 0 {
+            format!(", corners refitted through the solved lens ({refit_rounds} rounds)")
+        } else {
+            String::new()
+        },
         z.len(),
         if refine {
             "rig refined (σ inflated for neighbour correlation)"
