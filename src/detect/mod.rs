@@ -225,8 +225,7 @@ fn detect_checkerboards(
     img: &GrayImage,
     rig: &crate::rig::Rig,
 ) -> Result<FrameDetection, DetectError> {
-    let corners = finder.find(img)?;
-    let grids = grid::assemble(&corners);
+    let (corners, grids) = grid::find_and_assemble(finder, img)?;
     let max_lines = rig
         .faces
         .iter()

@@ -434,6 +434,23 @@ pub struct RigSection {
     pub path: Option<PathBuf>,
 }
 
+/// `[detect]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DetectSection {
+    /// Look again at full resolution where the half-resolution front end left corners it could not
+    /// link (faces seen at 75°+ from frontal, squares 3–5 px across one way;
+    /// [`crate::detect::grid::find_and_assemble`]). Those corners carry their foreshortening bias
+    /// in their covariance ([`crate::detect::face::grazing_bias_px`]).
+    pub second_look: bool,
+}
+
+impl Default for DetectSection {
+    fn default() -> Self {
+        DetectSection { second_look: true }
+    }
+}
+
 /// The whole file.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -443,6 +460,7 @@ pub struct StationConfig {
     pub rig: RigSection,
     pub plan: PlanSection,
     pub synthetic: SyntheticSection,
+    pub detect: DetectSection,
     pub solve: SolveSection,
     pub qa: QaSection,
     pub output: OutputSection,
