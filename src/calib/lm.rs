@@ -131,7 +131,10 @@ pub enum Weighting {
     /// squares); equally otherwise.
     #[default]
     Covariance,
-    /// Equally (ordinary least squares): covariances are ignored.
+    /// Equally (ordinary least squares), except that a corner whose own σ exceeds
+    /// [`EQUAL_WEIGHT_CEILING`] × the median corner's counts by that σ (a grazing face's corners,
+    /// whose covariance holds the face's bias: [`crate::detect::face::add_grazing_bias`]). Without
+    /// covariances, or with none that large, plain equal weights.
     Equal,
 }
 
@@ -359,6 +362,8 @@ struct Problem<'a> {
     map: ParamMap,
     /// `whiten[i][j] = L⁻¹` with `Σ_ij = L Lᵀ`, when the points are weighted by their covariances.
     whiten: Option<Vec<Vec<Matrix2<f64>>>>,
+    /// `whiten` holds [`Weighting::Equal`]'s weights (no claimed scatter to compare with).
+    equal: bool,
 }
 
 /// `L⁻¹` for the Cholesky factor `L` of a symmetric positive definite 2×2 matrix (`None` otherwise).
@@ -370,11 +375,20 @@ fn inverse_cholesky(c: &Matrix2<f64>) -> Option<Matrix2<f64>> {
     (a > 0.0 && d > 0.0 && w.iter().all(|x| x.is_finite())).then_some(w)
 }
 
-/// The whitening matrices of every point and the median corner σ (px), when `weighting` asks for
-/// them and every point has a covariance.
+/// With [`Weighting::Equal`], a corner whose own σ (`√(trace Σ / 2)`) is more than this many times
+/// the median corner's counts by it: its weight is `(EQUAL_WEIGHT_CEILING · median / σ)²`; every
+/// other corner weighs the same.
+pub const EQUAL_WEIGHT_CEILING: f64 = 2.0;
+
+/// The whitening matrices of every point and the corner σ (px) the solve's unit stands for, when
+/// `weighting` asks for them and every point has a covariance. With [`Weighting::Equal`]: `None`
+/// unless some corner's σ exceeds [`EQUAL_WEIGHT_CEILING`] × the median (then the plain equal solve
+/// is the same), and otherwise isotropic weights `1 / max(ceiling, σ)` — equal for the corners the
+/// detector rates ordinary, less for the few it says are much worse (a grazing face's, whose
+/// covariance holds its bias: [`crate::detect::face::add_grazing_bias`]).
 fn whitening(views: &[View], weighting: Weighting) -> Option<(Vec<Vec<Matrix2<f64>>>, f64)> {
     if weighting == Weighting::Equal {
-        return None;
+        return equal_whitening(views);
     }
     let mut sigmas = Vec::new();
     let whiten = views
@@ -393,6 +407,34 @@ fn whitening(views: &[View], weighting: Weighting) -> Option<(Vec<Vec<Matrix2<f6
     sigmas.sort_by(f64::total_cmp);
     let median = *sigmas.get(sigmas.len() / 2)?;
     (median > 0.0 && median.is_finite()).then_some((whiten, median))
+}
+
+/// [`whitening`] for [`Weighting::Equal`].
+fn equal_whitening(views: &[View]) -> Option<(Vec<Vec<Matrix2<f64>>>, f64)> {
+    let sigmas: Vec<Vec<f64>> = views
+        .iter()
+        .map(|v| {
+            (v.points.iter())
+                .map(|c| c.cov.map(|cov| (cov.trace() / 2.0).sqrt()))
+                .collect::<Option<Vec<_>>>()
+        })
+        .collect::<Option<Vec<_>>>()?;
+    let mut all: Vec<f64> = sigmas.iter().flatten().copied().collect();
+    all.sort_by(f64::total_cmp);
+    let median = *all.get(all.len() / 2)?;
+    let ceiling = EQUAL_WEIGHT_CEILING * median;
+    let largest = *all.last()?;
+    if !(ceiling > 0.0 && largest.is_finite() && largest > ceiling) {
+        return None;
+    }
+    let whiten = (sigmas.iter())
+        .map(|v| {
+            v.iter()
+                .map(|&s| Matrix2::from_diagonal_element(1.0 / s.max(ceiling)))
+                .collect()
+        })
+        .collect();
+    Some((whiten, ceiling))
 }
 
 /// A loss whose scale (px) is expressed in units of `sigma` px.
@@ -593,7 +635,8 @@ pub fn solve_from(
     let (whiten, loss) = match whitening(views, opts.weighting) {
         Some((w, sigma)) => {
             info!(
-                median_corner_sigma_px = sigma,
+                corner_sigma_px = sigma,
+                weighting = ?opts.weighting,
                 "points weighted by their own covariances"
             );
             (Some(w), loss_in_units(opts.loss, sigma))
@@ -606,6 +649,7 @@ pub fn solve_from(
         loss,
         map: ParamMap::new(opts.model, &opts.fix),
         whiten,
+        equal: opts.weighting == Weighting::Equal,
     };
     let mut state = State {
         camera,
@@ -792,7 +836,8 @@ fn finish(
         Some(_) => (
             ssr_px,
             (ssr_px / (m_res - n.n_params()) as f64).sqrt(),
-            Some(marginal.sigma2.sqrt()),
+            // Equal weights claim no scatter of their own to compare with.
+            (!problem.equal).then(|| marginal.sigma2.sqrt()),
         ),
     };
     Ok(Calibration {
@@ -879,6 +924,7 @@ pub fn view_information(
             map: ParamMap::new(model, fix),
             // Predicted corners carry no covariance of their own: equal weights.
             whiten: None,
+            equal: true,
         };
         let ni = one.linearise(&State {
             camera: camera.clone(),

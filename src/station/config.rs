@@ -309,8 +309,9 @@ pub struct SolveSection {
     /// Fix k3 at 0 (and say so) when the data leave it undetermined: within 2σ of 0 while 1σ moves the
     /// image border by over a pixel ([`crate::calib::insignificant_at_border`]).
     pub fix_undetermined_k3: bool,
-    /// `equal` (every corner alike) or `covariance` (each corner by the inverse of its own fit's
-    /// covariance, [`crate::calib::Weighting`]). `equal` by default while the detector's noise-free
+    /// `equal` (every corner alike, but for the few the detector rates much worse than the median,
+    /// such as a grazing face's: [`crate::calib::Weighting::Equal`]) or `covariance` (each corner by
+    /// the inverse of its own fit's covariance, [`crate::calib::Weighting`]). `equal` by default while the detector's noise-free
     /// bias is as large as its noise: on the synthetic station the covariance-weighted σ are then
     /// smaller but miss that bias (χ² of fx, fy, cx, cy against the truth 34 / 16 / 24 against
     /// 17 / 7.5 / 10 equally weighted, seeds 1–3, `examples/station_chi2.rs`; issue 29).
