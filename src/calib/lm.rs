@@ -362,8 +362,10 @@ struct Problem<'a> {
     map: ParamMap,
     /// `whiten[i][j] = L⁻¹` with `Σ_ij = L Lᵀ`, when the points are weighted by their covariances.
     whiten: Option<Vec<Vec<Matrix2<f64>>>>,
-    /// `whiten` holds [`Weighting::Equal`]'s weights (no claimed scatter to compare with).
+    /// `whiten` holds [`Weighting::Equal`]'s weights (no claimed scatter to compare with), whose
+    /// unit is `unit_px` px.
     equal: bool,
+    unit_px: f64,
 }
 
 /// `L⁻¹` for the Cholesky factor `L` of a symmetric positive definite 2×2 matrix (`None` otherwise).
@@ -632,16 +634,16 @@ pub fn solve_from(
         .clone()
         .with_distortion(opts.model, &init.camera.distortion_coefficients());
     apply_fixes(&mut camera, &opts.fix);
-    let (whiten, loss) = match whitening(views, opts.weighting) {
+    let (whiten, loss, unit_px) = match whitening(views, opts.weighting) {
         Some((w, sigma)) => {
             info!(
                 corner_sigma_px = sigma,
                 weighting = ?opts.weighting,
                 "points weighted by their own covariances"
             );
-            (Some(w), loss_in_units(opts.loss, sigma))
+            (Some(w), loss_in_units(opts.loss, sigma), sigma)
         }
-        None => (None, opts.loss),
+        None => (None, opts.loss, 1.0),
     };
     let mut problem = Problem {
         views,
@@ -650,6 +652,7 @@ pub fn solve_from(
         map: ParamMap::new(opts.model, &opts.fix),
         whiten,
         equal: opts.weighting == Weighting::Equal,
+        unit_px,
     };
     let mut state = State {
         camera,
@@ -786,7 +789,7 @@ fn finish(
     let n_points = problem.n_active();
     let m_res = 2 * n_points;
     // Undamped Schur complement and its inverse: the marginal information of the intrinsics.
-    let marginal = n.marginal(
+    let mut marginal = n.marginal(
         m_res,
         |i| problem.views[i].name.clone(),
         |s| CalibError::Undetermined {
@@ -796,6 +799,26 @@ fn finish(
                 .collect(),
         },
     )?;
+    if problem.equal && problem.whiten.is_some() {
+        // Equal weights with a ceiling: the residuals' scatter is measured in pixels over every
+        // corner, as the plain equal solve measures it (the few corners that count by their own σ
+        // keep their share of it), and the σ are never smaller than that scatter gives: equal
+        // weights claim no noise model of their own to shrink it.
+        let mut ssr = 0.0;
+        for (i, v) in problem.views.iter().enumerate() {
+            for (j, c) in v.points.iter().enumerate() {
+                if let (true, Ok(uv)) = (problem.active[i][j], camera.project(&poses[i], &c.xyz)) {
+                    ssr += (uv - c.uv).norm_squared();
+                }
+            }
+        }
+        let dof = m_res.saturating_sub(n.n_params()).max(1) as f64;
+        let s2 = ssr / dof / (problem.unit_px * problem.unit_px);
+        if s2.is_finite() && s2 > marginal.sigma2 && marginal.sigma2 > 0.0 {
+            marginal.covariance *= s2 / marginal.sigma2;
+            marginal.sigma2 = s2;
+        }
+    }
     let (std_dev, estimated) = map.std_dev(&marginal.covariance);
 
     let mut views = Vec::with_capacity(problem.views.len());
@@ -925,6 +948,7 @@ pub fn view_information(
             // Predicted corners carry no covariance of their own: equal weights.
             whiten: None,
             equal: true,
+            unit_px: 1.0,
         };
         let ni = one.linearise(&State {
             camera: camera.clone(),
@@ -995,6 +1019,36 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Equal weighting: no whitening while every corner's σ is within the ceiling (the plain equal
+    /// solve, bit for bit); a corner whose σ is over twice the median counts by it, all others alike.
+    #[test]
+    fn equal_weights_have_a_ceiling_at_twice_the_median_sigma() {
+        let point = |s: f64| Correspondence {
+            xyz: Vector3::zeros(),
+            uv: Vector2::zeros(),
+            cov: Some(Matrix2::from_diagonal_element(s * s)),
+        };
+        let view = |sigmas: &[f64]| View {
+            name: "v".into(),
+            points: sigmas.iter().map(|&s| point(s)).collect(),
+        };
+        assert!(whitening(&[view(&[0.01, 0.012, 0.015, 0.019])], Weighting::Equal).is_none());
+        let (w, unit) = whitening(&[view(&[0.01, 0.012, 0.015, 0.1])], Weighting::Equal).unwrap();
+        // Median 0.015 (the upper of the two middle ones), ceiling 0.03 px.
+        assert!((unit - 0.03).abs() < 1e-12, "{unit}");
+        for (j, want) in [1.0 / 0.03, 1.0 / 0.03, 1.0 / 0.03, 10.0]
+            .into_iter()
+            .enumerate()
+        {
+            assert!((w[0][j][(0, 0)] - want).abs() < 1e-9, "{j}: {}", w[0][j]);
+            assert!((w[0][j][(1, 1)] - want).abs() < 1e-9 && w[0][j][(0, 1)] == 0.0);
+        }
+        // A point without a covariance: plain equal weights.
+        let mut v = view(&[0.01, 0.1]);
+        v.points[0].cov = None;
+        assert!(whitening(&[v], Weighting::Equal).is_none());
     }
 
     #[test]
