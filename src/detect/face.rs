@@ -189,7 +189,7 @@ mod tests {
 
     /// A 9×8 face of 20 mm squares imaged at 1 px/mm along its columns and `c` px/mm along its rows.
     fn face(c: f64) -> FaceDetection {
-        let cov = Matrix2::new(4e-4, 1e-5, 1e-5, 9e-4);
+        let cov: Matrix2<f64> = Matrix2::new(4e-4, 1e-5, 1e-5, 9e-4);
         FaceDetection {
             face: 0,
             corners: (0..8)
