@@ -112,20 +112,41 @@ pub const GRAZING_BIAS_PX: f64 = 0.008;
 /// noise of any real camera and does not grow with it.
 pub const GRAZING_FROM_DEG: f64 = 75.0;
 
+/// Where each (row, col) of a face is in its corner list: a dense table over the face's extent.
+struct CornerIndex {
+    cols: usize,
+    slot: Vec<Option<usize>>,
+}
+
+impl CornerIndex {
+    fn of(face: &FaceDetection) -> CornerIndex {
+        let rows = face.corners.iter().map(|c| c.row + 1).max().unwrap_or(0);
+        let cols = face.corners.iter().map(|c| c.col + 1).max().unwrap_or(0);
+        let mut slot = vec![None; rows * cols];
+        for (k, c) in face.corners.iter().enumerate() {
+            slot[c.row * cols + c.col] = Some(k);
+        }
+        CornerIndex { cols, slot }
+    }
+
+    fn get(&self, row: usize, col: usize) -> Option<usize> {
+        if col >= self.cols {
+            return None;
+        }
+        self.slot.get(row * self.cols + col).copied().flatten()
+    }
+}
+
 /// The foreshortening of `face` at its corner `k`: cos of the angle from frontal, the ratio of the
 /// singular values of the local map from the face plane (mm) to the image (px), from the corner's
 /// labelled neighbours along its row and column (central differences where both sides are there).
-fn foreshortening(
-    face: &FaceDetection,
-    at: &std::collections::HashMap<(usize, usize), usize>,
-    k: usize,
-) -> Option<f64> {
+fn foreshortening(face: &FaceDetection, at: &CornerIndex, k: usize) -> Option<f64> {
     let c = &face.corners[k];
     let step = |dr: isize, dc: isize| -> Option<(Vector2<f64>, f64)> {
         let get = |s: isize| {
             let r = c.row.checked_add_signed(s * dr)?;
             let col = c.col.checked_add_signed(s * dc)?;
-            at.get(&(r, col)).map(|&i| &face.corners[i])
+            at.get(r, col).map(|i| &face.corners[i])
         };
         let (p, m) = (get(1), get(-1));
         let (a, b, n) = match (p, m) {
@@ -162,10 +183,7 @@ fn foreshortening(
 pub fn add_grazing_bias(faces: &mut [FaceDetection]) {
     let b0 = grazing_bias_px(GRAZING_FROM_DEG.to_radians().cos());
     for face in faces {
-        let at: std::collections::HashMap<(usize, usize), usize> = (face.corners.iter())
-            .enumerate()
-            .map(|(k, c)| ((c.row, c.col), k))
-            .collect();
+        let at = CornerIndex::of(face);
         let n = face.corners.len() as f64;
         let extra: Vec<f64> = (0..face.corners.len())
             .map(|k| {
