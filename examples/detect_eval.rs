@@ -15,7 +15,8 @@
 //! undistorted coordinates, with the true camera and with calibrations solved from the corners
 //! (see `rerefine_report`), and prints the calibration's errors before and after. `NOISE=σ`
 //! renders with pixel noise σ instead of the set's (`NOISE=0`: the noise-free bias); `SS=n` with
-//! n×n supersampling; `VIG`, `GAMMA`, `BLUR` with that vignetting, gamma, blur σ.
+//! n×n supersampling; `VIG`, `GAMMA`, `BLUR` with that vignetting, gamma, blur σ; `SECOND_LOOK=0`
+//! without the full-resolution second look at grazing faces.
 #![allow(clippy::print_stdout, clippy::print_stderr)]
 
 use std::path::PathBuf;
@@ -118,6 +119,8 @@ fn main() -> anyhow::Result<()> {
         })
         .collect();
     let mut finder = CornerFinder::new()?;
+    // SECOND_LOOK=0: without the full-resolution second look at grazing faces.
+    finder.set_second_look(std::env::var("SECOND_LOOK").map_or(true, |v| v != "0"));
     let rerefine = std::env::var_os("REREFINE").is_some();
     let mut kept = Vec::new();
     let mut all = Vec::new();

@@ -7,8 +7,9 @@
 //! ```sh
 //! cargo run --release --example station_chi2 -- 20
 //! ```
-//! Each run's fit views are also re-solved with the corners weighted alike (the station before issue
-//! 29), side by side.
+//! Each run's fit views are also re-solved with equal weights (the station's default: every corner
+//! alike but for those whose σ is over twice the median's) and with plain equal weights (the
+//! covariances stripped: the station before issue 29 line 4), side by side.
 #![allow(clippy::print_stdout, clippy::unwrap_used, clippy::expect_used)]
 
 use std::sync::atomic::AtomicBool;
@@ -28,9 +29,9 @@ fn main() {
     let rig = Rig::from_toml_str(CUBE, "cube_outside.toml").unwrap().0;
     println!(
         "synthetic station: per seed, (estimate − truth)/σ of fx fy cx cy and χ², as the station solved \
-         (corners weighted by their covariances) | re-solved from its observations.json with equal weights"
+         (corners weighted by their covariances) | re-solved from its observations.json with equal weights | with plain equal weights (no ceiling)"
     );
-    let mut chi2s: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
+    let mut chi2s: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
     for seed in 1..=n {
         let mut t = toml::Table::new();
         set_key(&mut t, "synthetic.seed", &seed.to_string()).unwrap();
@@ -94,6 +95,23 @@ fn main() {
         if std::env::var_os("ORACLE").is_some() {
             oracle(&fit, &truth, obs.image_size, &cfg, &rep, seed, &rig);
         }
+        // Equal weights without the ceiling (every corner alike, the station before issue 29 line 4).
+        let stripped: Vec<_> = (fit.iter().cloned())
+            .map(|mut v| {
+                v.points.iter_mut().for_each(|p| p.cov = None);
+                v
+            })
+            .collect();
+        let c = cubecal::calib::solve(&stripped, obs.image_size, &opts).unwrap();
+        let plain = (
+            c.camera.params.to_vec(),
+            c.free_params
+                .iter()
+                .map(|s| s.to_string())
+                .collect::<Vec<_>>(),
+            c.covariance.clone(),
+            c.noise_scale,
+        );
         let c = cubecal::calib::solve(&fit, obs.image_size, &opts).unwrap();
         let equal = (
             c.camera.params.to_vec(),
@@ -105,7 +123,7 @@ fn main() {
             c.noise_scale,
         );
         let mut line = format!("  seed {seed:2}:");
-        for (slot, (params, free, cov, scale)) in [station, equal].into_iter().enumerate() {
+        for (slot, (params, free, cov, scale)) in [station, equal, plain].into_iter().enumerate() {
             let pos: Vec<usize> = NAMES
                 .iter()
                 .map(|n| free.iter().position(|f| f == n).unwrap())
@@ -134,7 +152,14 @@ fn main() {
         }
         println!("{line}");
     }
-    for (slot, label) in ["station (weighted)", "equal weights"].iter().enumerate() {
+    for (slot, label) in [
+        "station (weighted)",
+        "equal weights (ceiling at 2× the median σ)",
+        "plain equal weights",
+    ]
+    .iter()
+    .enumerate()
+    {
         let chi2s = &chi2s[slot];
         let m = chi2s.len() as f64;
         let mean = chi2s.iter().sum::<f64>() / m;

@@ -131,7 +131,10 @@ pub enum Weighting {
     /// squares); equally otherwise.
     #[default]
     Covariance,
-    /// Equally (ordinary least squares): covariances are ignored.
+    /// Equally (ordinary least squares), except that a corner whose own σ exceeds
+    /// [`EQUAL_WEIGHT_CEILING`] × the median corner's counts by that σ (a grazing face's corners,
+    /// whose covariance holds the face's bias: [`crate::detect::face::add_grazing_bias`]). Without
+    /// covariances, or with none that large, plain equal weights.
     Equal,
 }
 
@@ -359,6 +362,10 @@ struct Problem<'a> {
     map: ParamMap,
     /// `whiten[i][j] = L⁻¹` with `Σ_ij = L Lᵀ`, when the points are weighted by their covariances.
     whiten: Option<Vec<Vec<Matrix2<f64>>>>,
+    /// `whiten` holds [`Weighting::Equal`]'s weights (no claimed scatter to compare with), whose
+    /// unit is `unit_px` px.
+    equal: bool,
+    unit_px: f64,
 }
 
 /// `L⁻¹` for the Cholesky factor `L` of a symmetric positive definite 2×2 matrix (`None` otherwise).
@@ -370,11 +377,20 @@ fn inverse_cholesky(c: &Matrix2<f64>) -> Option<Matrix2<f64>> {
     (a > 0.0 && d > 0.0 && w.iter().all(|x| x.is_finite())).then_some(w)
 }
 
-/// The whitening matrices of every point and the median corner σ (px), when `weighting` asks for
-/// them and every point has a covariance.
+/// With [`Weighting::Equal`], a corner whose own σ (`√(trace Σ / 2)`) is more than this many times
+/// the median corner's counts by it: its weight is `(EQUAL_WEIGHT_CEILING · median / σ)²`; every
+/// other corner weighs the same.
+pub const EQUAL_WEIGHT_CEILING: f64 = 2.0;
+
+/// The whitening matrices of every point and the corner σ (px) the solve's unit stands for, when
+/// `weighting` asks for them and every point has a covariance. With [`Weighting::Equal`]: `None`
+/// unless some corner's σ exceeds [`EQUAL_WEIGHT_CEILING`] × the median (then the plain equal solve
+/// is the same), and otherwise isotropic weights `1 / max(ceiling, σ)` — equal for the corners the
+/// detector rates ordinary, less for the few it says are much worse (a grazing face's, whose
+/// covariance holds its bias: [`crate::detect::face::add_grazing_bias`]).
 fn whitening(views: &[View], weighting: Weighting) -> Option<(Vec<Vec<Matrix2<f64>>>, f64)> {
     if weighting == Weighting::Equal {
-        return None;
+        return equal_whitening(views);
     }
     let mut sigmas = Vec::new();
     let whiten = views
@@ -393,6 +409,34 @@ fn whitening(views: &[View], weighting: Weighting) -> Option<(Vec<Vec<Matrix2<f6
     sigmas.sort_by(f64::total_cmp);
     let median = *sigmas.get(sigmas.len() / 2)?;
     (median > 0.0 && median.is_finite()).then_some((whiten, median))
+}
+
+/// [`whitening`] for [`Weighting::Equal`].
+fn equal_whitening(views: &[View]) -> Option<(Vec<Vec<Matrix2<f64>>>, f64)> {
+    let sigmas: Vec<Vec<f64>> = views
+        .iter()
+        .map(|v| {
+            (v.points.iter())
+                .map(|c| c.cov.map(|cov| (cov.trace() / 2.0).sqrt()))
+                .collect::<Option<Vec<_>>>()
+        })
+        .collect::<Option<Vec<_>>>()?;
+    let mut all: Vec<f64> = sigmas.iter().flatten().copied().collect();
+    all.sort_by(f64::total_cmp);
+    let median = *all.get(all.len() / 2)?;
+    let ceiling = EQUAL_WEIGHT_CEILING * median;
+    let largest = *all.last()?;
+    if !(ceiling > 0.0 && largest.is_finite() && largest > ceiling) {
+        return None;
+    }
+    let whiten = (sigmas.iter())
+        .map(|v| {
+            v.iter()
+                .map(|&s| Matrix2::from_diagonal_element(1.0 / s.max(ceiling)))
+                .collect()
+        })
+        .collect();
+    Some((whiten, ceiling))
 }
 
 /// A loss whose scale (px) is expressed in units of `sigma` px.
@@ -590,15 +634,16 @@ pub fn solve_from(
         .clone()
         .with_distortion(opts.model, &init.camera.distortion_coefficients());
     apply_fixes(&mut camera, &opts.fix);
-    let (whiten, loss) = match whitening(views, opts.weighting) {
+    let (whiten, loss, unit_px) = match whitening(views, opts.weighting) {
         Some((w, sigma)) => {
             info!(
-                median_corner_sigma_px = sigma,
+                corner_sigma_px = sigma,
+                weighting = ?opts.weighting,
                 "points weighted by their own covariances"
             );
-            (Some(w), loss_in_units(opts.loss, sigma))
+            (Some(w), loss_in_units(opts.loss, sigma), sigma)
         }
-        None => (None, opts.loss),
+        None => (None, opts.loss, 1.0),
     };
     let mut problem = Problem {
         views,
@@ -606,6 +651,8 @@ pub fn solve_from(
         loss,
         map: ParamMap::new(opts.model, &opts.fix),
         whiten,
+        equal: opts.weighting == Weighting::Equal,
+        unit_px,
     };
     let mut state = State {
         camera,
@@ -742,7 +789,7 @@ fn finish(
     let n_points = problem.n_active();
     let m_res = 2 * n_points;
     // Undamped Schur complement and its inverse: the marginal information of the intrinsics.
-    let marginal = n.marginal(
+    let mut marginal = n.marginal(
         m_res,
         |i| problem.views[i].name.clone(),
         |s| CalibError::Undetermined {
@@ -752,6 +799,26 @@ fn finish(
                 .collect(),
         },
     )?;
+    if problem.equal && problem.whiten.is_some() {
+        // Equal weights with a ceiling: the residuals' scatter is measured in pixels over every
+        // corner, as the plain equal solve measures it (the few corners that count by their own σ
+        // keep their share of it), and the σ are never smaller than that scatter gives: equal
+        // weights claim no noise model of their own to shrink it.
+        let mut ssr = 0.0;
+        for (i, v) in problem.views.iter().enumerate() {
+            for (j, c) in v.points.iter().enumerate() {
+                if let (true, Ok(uv)) = (problem.active[i][j], camera.project(&poses[i], &c.xyz)) {
+                    ssr += (uv - c.uv).norm_squared();
+                }
+            }
+        }
+        let dof = m_res.saturating_sub(n.n_params()).max(1) as f64;
+        let s2 = ssr / dof / (problem.unit_px * problem.unit_px);
+        if s2.is_finite() && s2 > marginal.sigma2 && marginal.sigma2 > 0.0 {
+            marginal.covariance *= s2 / marginal.sigma2;
+            marginal.sigma2 = s2;
+        }
+    }
     let (std_dev, estimated) = map.std_dev(&marginal.covariance);
 
     let mut views = Vec::with_capacity(problem.views.len());
@@ -792,7 +859,8 @@ fn finish(
         Some(_) => (
             ssr_px,
             (ssr_px / (m_res - n.n_params()) as f64).sqrt(),
-            Some(marginal.sigma2.sqrt()),
+            // Equal weights claim no scatter of their own to compare with.
+            (!problem.equal).then(|| marginal.sigma2.sqrt()),
         ),
     };
     Ok(Calibration {
@@ -879,6 +947,8 @@ pub fn view_information(
             map: ParamMap::new(model, fix),
             // Predicted corners carry no covariance of their own: equal weights.
             whiten: None,
+            equal: true,
+            unit_px: 1.0,
         };
         let ni = one.linearise(&State {
             camera: camera.clone(),
@@ -949,6 +1019,36 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Equal weighting: no whitening while every corner's σ is within the ceiling (the plain equal
+    /// solve, bit for bit); a corner whose σ is over twice the median counts by it, all others alike.
+    #[test]
+    fn equal_weights_have_a_ceiling_at_twice_the_median_sigma() {
+        let point = |s: f64| Correspondence {
+            xyz: Vector3::zeros(),
+            uv: Vector2::zeros(),
+            cov: Some(Matrix2::from_diagonal_element(s * s)),
+        };
+        let view = |sigmas: &[f64]| View {
+            name: "v".into(),
+            points: sigmas.iter().map(|&s| point(s)).collect(),
+        };
+        assert!(whitening(&[view(&[0.01, 0.012, 0.015, 0.019])], Weighting::Equal).is_none());
+        let (w, unit) = whitening(&[view(&[0.01, 0.012, 0.015, 0.1])], Weighting::Equal).unwrap();
+        // Median 0.015 (the upper of the two middle ones), ceiling 0.03 px.
+        assert!((unit - 0.03).abs() < 1e-12, "{unit}");
+        for (j, want) in [1.0 / 0.03, 1.0 / 0.03, 1.0 / 0.03, 10.0]
+            .into_iter()
+            .enumerate()
+        {
+            assert!((w[0][j][(0, 0)] - want).abs() < 1e-9, "{j}: {}", w[0][j]);
+            assert!((w[0][j][(1, 1)] - want).abs() < 1e-9 && w[0][j][(0, 1)] == 0.0);
+        }
+        // A point without a covariance: plain equal weights.
+        let mut v = view(&[0.01, 0.1]);
+        v.points[0].cov = None;
+        assert!(whitening(&[v], Weighting::Equal).is_none());
     }
 
     #[test]

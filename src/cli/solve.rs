@@ -67,8 +67,9 @@ pub struct SolveArgs {
     /// Iteration limit of the refinement.
     #[arg(long, default_value_t = 200)]
     pub max_iterations: usize,
-    /// Weight every point alike, ignoring the points' `cov` (by default, when every point has a
-    /// covariance, each is weighted by its inverse).
+    /// Weight every point alike but for those whose `cov` gives a σ over twice the median point's,
+    /// which count by that σ (a grazing face's corners carry its bias there); by default, when
+    /// every point has a covariance, each is weighted by its inverse.
     #[arg(long)]
     pub unweighted: bool,
 }

@@ -87,6 +87,11 @@ pub struct CornerFinder {
     smooth: Vec<f32>,
     /// Its saddle response.
     resp: Vec<f32>,
+    /// The rectangle of a second look, enlarged 2× (see [`CornerFinder::find_full_res`]).
+    zoomed: Vec<u8>,
+    /// Whether [`super::grid::find_and_assemble`] takes the full-resolution second look where the
+    /// first pass left unlinked corners (on unless [`CornerFinder::set_second_look`] says otherwise).
+    second_look: bool,
 }
 
 impl CornerFinder {
@@ -98,8 +103,20 @@ impl CornerFinder {
     pub fn with_threshold(threshold: f32) -> CornerFinder {
         CornerFinder {
             threshold,
+            second_look: true,
             ..CornerFinder::default()
         }
+    }
+
+    /// Turn the full-resolution second look at grazing faces on or off (on by default; the station's
+    /// `detect.second_look`).
+    pub fn set_second_look(&mut self, on: bool) {
+        self.second_look = on;
+    }
+
+    /// Whether the full-resolution second look is taken (see [`CornerFinder::set_second_look`]).
+    pub fn second_look(&self) -> bool {
+        self.second_look
     }
 
     /// All X-corners of a frame, strongest first.
@@ -121,6 +138,12 @@ impl CornerFinder {
         if self.busy > MAX_BUSY_FRACTION {
             return Ok(Vec::new());
         }
+        Ok(self.sorted_peaks(img, w, h))
+    }
+
+    /// The peaks of the response last filtered (frame `img`, `w`×`h` at half resolution), strongest
+    /// first, at most [`MAX_CANDIDATES`].
+    fn sorted_peaks(&self, img: &GrayImage, w: usize, h: usize) -> Vec<XCorner> {
         let mut out = self.peaks(img, w, h);
         // Strongest first; two peaks whose Newton steps lead to the same pixel give the same corner.
         out.sort_by(|a, b| {
@@ -131,13 +154,63 @@ impl CornerFinder {
         });
         out.dedup_by(|a, b| a == b);
         out.truncate(MAX_CANDIDATES);
-        Ok(out)
+        out
     }
 
     /// The fraction of the last frame's half-resolution pixels whose saddle response exceeded the
     /// floor; above [`MAX_BUSY_FRACTION`] [`find`](CornerFinder::find) looked for no corner.
     pub fn busy_fraction(&self) -> f32 {
         self.busy
+    }
+
+    /// X-corners of the rectangle `[x0, x1) × [y0, y1)` of `img` found at full resolution, with their
+    /// positions in the frame: the method of [`CornerFinder::find`] applied to the rectangle
+    /// enlarged 2× by pixel replication, whose 2×2 average is the frame itself, and whose rings
+    /// ([`RING_RADII`]) are half as wide in the frame. A face seen at 75°+ from frontal, or a small one
+    /// at an image corner under strong barrel distortion, has squares 3–5 px across in one direction:
+    /// the half-resolution pass smooths them away, this pass sees them (at about 4× the cost per
+    /// frame pixel, so it is only run where [`super::grid`] asks for it). Responses are scaled to
+    /// the half-resolution pass's unit (a second difference over half-resolution pixels is 4× one
+    /// over full-resolution pixels, the response its square), so that both rank together as seeds.
+    pub fn find_full_res(
+        &mut self,
+        img: &GrayImage,
+        [x0, y0, x1, y1]: [u32; 4],
+    ) -> Result<Vec<XCorner>, DetectError> {
+        let (x1, y1) = (x1.min(img.width()), y1.min(img.height()));
+        let (w, h) = (x1.saturating_sub(x0), y1.saturating_sub(y0));
+        if 2 * w < MIN_SIDE || 2 * h < MIN_SIDE {
+            return Ok(Vec::new());
+        }
+        let mut zoomed = std::mem::take(&mut self.zoomed);
+        zoomed.clear();
+        let src = img.as_raw();
+        let stride = img.width() as usize;
+        for y in y0..y1 {
+            let row = &src[y as usize * stride..][x0 as usize..x1 as usize];
+            let start = zoomed.len();
+            zoomed.extend(row.iter().flat_map(|&v| [v, v]));
+            zoomed.extend_from_within(start..);
+        }
+        let Some(up) = GrayImage::from_raw(2 * w, 2 * h, zoomed) else {
+            return Ok(Vec::new());
+        };
+        // No busy-frame test here (step 4 of the module doc): the region holds a face's tiny
+        // squares, whose response can exceed the floor over much of it, and the frame's busy
+        // fraction, measured by the first pass, stays what `busy_fraction` reports.
+        let (hw, hh) = (w as usize, h as usize);
+        self.filter(&up, hw, hh);
+        let found = self.sorted_peaks(&up, hw, hh);
+        self.zoomed = up.into_raw();
+        let origin = Vector2::new(f64::from(x0), f64::from(y0));
+        Ok(found
+            .into_iter()
+            .map(|c| XCorner {
+                uv: origin + (c.uv - Vector2::new(0.5, 0.5)) / 2.0,
+                response: 16.0 * c.response,
+                ..c
+            })
+            .collect())
     }
 
     /// The smoothed half-resolution frame into `smooth` and its saddle response into `resp` (zero
@@ -536,6 +609,58 @@ mod tests {
             })
             .count();
         assert_eq!(stray, 0);
+    }
+
+    /// The full-resolution look sees squares the half-resolution pass smooths away, and places the
+    /// corners in the frame's coordinates.
+    #[test]
+    fn the_full_resolution_look_finds_small_squares_in_frame_coordinates() {
+        let origin = Vector2::new(150.3, 120.6);
+        let (size, angle) = (5.0, 0.3_f64);
+        let img = board(300, 240, size, angle, origin);
+        let mut finder = CornerFinder::new().unwrap();
+        let rect = [100, 70, 200, 170];
+        let half = finder.find(&img).unwrap();
+        let full = finder.find_full_res(&img, rect).unwrap();
+        let (mut inside, mut by_half, mut by_full) = (0, 0, 0);
+        for i in -12..=12 {
+            for j in -12..=12 {
+                let p = lattice_point(origin, size, angle, i, j);
+                // Corners well inside the rectangle (its rings must fit).
+                if p.x < 110.0 || p.y < 80.0 || p.x > 190.0 || p.y > 160.0 {
+                    continue;
+                }
+                inside += 1;
+                by_half += usize::from(half.iter().any(|k| (k.uv - p).norm() < 1.0));
+                by_full += usize::from(full.iter().any(|k| (k.uv - p).norm() < 0.5));
+            }
+        }
+        assert!(inside >= 150, "{inside}");
+        assert!(
+            by_half * 4 < inside,
+            "half resolution: {by_half} of {inside}"
+        );
+        assert!(
+            by_full * 10 >= 9 * inside,
+            "full resolution: {by_full} of {inside}"
+        );
+        // Only in the rectangle; an empty or tiny rectangle gives nothing.
+        assert!(
+            full.iter()
+                .all(|k| k.uv.x > 99.0 && k.uv.x < 200.0 && k.uv.y > 69.0 && k.uv.y < 170.0)
+        );
+        assert!(
+            finder
+                .find_full_res(&img, [10, 10, 20, 20])
+                .unwrap()
+                .is_empty()
+        );
+        assert!(
+            finder
+                .find_full_res(&img, [290, 10, 400, 100])
+                .unwrap()
+                .is_empty()
+        );
     }
 
     /// Neighbours along a row or column have opposite polarity: their dark-quadrant bisectors are

@@ -25,9 +25,11 @@
 // must give the same detections).
 use std::collections::BTreeMap;
 
+use image::GrayImage;
 use nalgebra::Vector2;
 
-use super::XCorner;
+use super::front::CornerFinder;
+use super::{DetectError, XCorner};
 
 /// Largest number of corners considered (strongest first); bounds the time on cluttered frames.
 pub const MAX_CORNERS: usize = 2000;
@@ -362,6 +364,174 @@ pub fn assemble(corners: &[XCorner]) -> Vec<Grid> {
     grids.sort_by_key(|g| std::cmp::Reverse(g.count()));
     grids
 }
+
+/// Side of the tiles (px) in which unlinked corners are counted for a second look.
+pub const SECOND_LOOK_TILE_PX: u32 = 32;
+/// A tile takes part in a second look from this many unlinked corners on.
+pub const SECOND_LOOK_TILE_CORNERS: usize = 2;
+/// A region gets a second look from this many unlinked corners on.
+pub const SECOND_LOOK_MIN_CORNERS: usize = 8;
+/// The second look covers at most this fraction of the frame (bounds the time on cluttered frames:
+/// the full-resolution pass costs about 4× the first pass per pixel covered).
+pub const SECOND_LOOK_MAX_AREA: f64 = 0.2;
+
+/// Regions `[x0, y0, x1, y1]` (px, end exclusive) where the front end found corners that no grid
+/// took: tiles of [`SECOND_LOOK_TILE_PX`] with at least [`SECOND_LOOK_TILE_CORNERS`] of them, more
+/// than corners of a grid, grown
+/// by one tile and joined where they touch, kept when they hold [`SECOND_LOOK_MIN_CORNERS`]; the most
+/// populated first, up to [`SECOND_LOOK_MAX_AREA`] of the frame.
+///
+/// Such scattered corners are what the half-resolution front end leaves of a face whose squares are
+/// 3–5 px wide in one direction (at 75–80° from frontal, or small in an image corner under strong
+/// distortion): it finds some of them, too few to link.
+pub fn unlinked_regions(
+    corners: &[XCorner],
+    grids: &[Grid],
+    width: u32,
+    height: u32,
+) -> Vec<[u32; 4]> {
+    let t = SECOND_LOOK_TILE_PX;
+    let (tw, th) = (width.div_ceil(t) as usize, height.div_ceil(t) as usize);
+    let mut linked = vec![false; corners.len()];
+    for i in grids.iter().flat_map(|g| g.cells.iter().flatten()) {
+        linked[*i] = true;
+    }
+    let tile_of = |c: &XCorner| {
+        let (x, y) = (
+            c.uv.x.max(0.0) as usize / t as usize,
+            c.uv.y.max(0.0) as usize / t as usize,
+        );
+        (x < tw && y < th).then_some(y * tw + x)
+    };
+    let mut count = vec![0usize; tw * th];
+    let mut linked_count = vec![0usize; tw * th];
+    for (c, &l) in corners.iter().zip(&linked) {
+        if let Some(k) = tile_of(c) {
+            if l {
+                linked_count[k] += 1;
+            } else {
+                count[k] += 1;
+            }
+        }
+    }
+    // Tiles with enough unlinked corners, more than linked ones (among a grid's corners, unlinked
+    // ones are its rejects, not a face the first pass could not resolve), grown by one tile.
+    let mut marked = vec![false; tw * th];
+    for (k, _) in count
+        .iter()
+        .enumerate()
+        .filter(|&(k, n)| *n >= SECOND_LOOK_TILE_CORNERS && *n > linked_count[k])
+    {
+        let (x, y) = (k % tw, k / tw);
+        for yy in y.saturating_sub(1)..(y + 2).min(th) {
+            for xx in x.saturating_sub(1)..(x + 2).min(tw) {
+                marked[yy * tw + xx] = true;
+            }
+        }
+    }
+    // Connected regions of marked tiles (4-neighbours), with their corner counts.
+    let mut seen = vec![false; tw * th];
+    let mut regions: Vec<(usize, [u32; 4])> = Vec::new();
+    for start in 0..tw * th {
+        if !marked[start] || seen[start] {
+            continue;
+        }
+        seen[start] = true;
+        let mut stack = vec![start];
+        let (mut n, mut bx) = (0, [usize::MAX, usize::MAX, 0, 0]);
+        while let Some(k) = stack.pop() {
+            let (x, y) = (k % tw, k / tw);
+            n += count[k];
+            bx = [
+                bx[0].min(x),
+                bx[1].min(y),
+                bx[2].max(x + 1),
+                bx[3].max(y + 1),
+            ];
+            let neighbours = [
+                (x > 0).then(|| k - 1),
+                (x + 1 < tw).then(|| k + 1),
+                (y > 0).then(|| k - tw),
+                (y + 1 < th).then(|| k + tw),
+            ];
+            for j in neighbours.into_iter().flatten() {
+                if marked[j] && !seen[j] {
+                    seen[j] = true;
+                    stack.push(j);
+                }
+            }
+        }
+        if n >= SECOND_LOOK_MIN_CORNERS {
+            let px = |v: usize, limit: u32| (v as u32 * t).min(limit);
+            regions.push((
+                n,
+                [
+                    px(bx[0], width),
+                    px(bx[1], height),
+                    px(bx[2], width),
+                    px(bx[3], height),
+                ],
+            ));
+        }
+    }
+    regions.sort_by_key(|(n, r)| (std::cmp::Reverse(*n), *r));
+    let budget = SECOND_LOOK_MAX_AREA * f64::from(width) * f64::from(height);
+    let mut area = 0.0;
+    regions
+        .into_iter()
+        .filter_map(|(_, r)| {
+            let a = f64::from(r[2] - r[0]) * f64::from(r[3] - r[1]);
+            (area + a <= budget).then(|| {
+                area += a;
+                r
+            })
+        })
+        .collect()
+}
+
+/// The front end's corners and their grids, with a second, full-resolution look
+/// ([`CornerFinder::find_full_res`]) at the [`unlinked_regions`]: the full-resolution corners found
+/// there (those near a linked corner left out) are assembled into grids of their own, added to the
+/// first pass's, which stay as they were (a face the first pass found is never lost to the second).
+pub fn find_and_assemble(
+    finder: &mut CornerFinder,
+    img: &GrayImage,
+) -> Result<(Vec<XCorner>, Vec<Grid>), DetectError> {
+    let mut corners = finder.find(img)?;
+    let mut grids = assemble(&corners);
+    if !finder.second_look() {
+        return Ok((corners, grids));
+    }
+    let regions = unlinked_regions(&corners, &grids, img.width(), img.height());
+    if regions.is_empty() {
+        return Ok((corners, grids));
+    }
+    let linked: Vec<Vector2<f64>> = grids
+        .iter()
+        .flat_map(|g| g.cells.iter().flatten())
+        .map(|&i| corners[i].uv)
+        .collect();
+    let mut second = Vec::new();
+    for r in &regions {
+        second.extend(finder.find_full_res(img, *r)?.into_iter().filter(|c| {
+            linked
+                .iter()
+                .all(|p| (p - c.uv).norm() > SECOND_LOOK_SAME_PX)
+        }));
+    }
+    let offset = corners.len();
+    for mut g in assemble(&second) {
+        for i in g.cells.iter_mut().flatten() {
+            *i += offset;
+        }
+        grids.push(g);
+    }
+    corners.extend(second);
+    Ok((corners, grids))
+}
+
+/// A full-resolution corner this close (px) to a linked corner is that corner again.
+pub const SECOND_LOOK_SAME_PX: f64 = 2.0;
 
 #[cfg(test)]
 mod tests {

@@ -225,8 +225,7 @@ fn detect_checkerboards(
     img: &GrayImage,
     rig: &crate::rig::Rig,
 ) -> Result<FrameDetection, DetectError> {
-    let corners = finder.find(img)?;
-    let grids = grid::assemble(&corners);
+    let (corners, grids) = grid::find_and_assemble(finder, img)?;
     let max_lines = rig
         .faces
         .iter()
@@ -239,6 +238,7 @@ fn detect_checkerboards(
         .collect();
     let (mut faces, mut rejected) = label::label(img, rig, &completed);
     own_lattice::refit_on_own_lattice(img, &completed, &mut faces);
+    face::add_grazing_bias(&mut faces);
     if grids.is_empty() {
         let busy = finder.busy_fraction();
         rejected.push(label::Rejection::frame(if busy > front::MAX_BUSY_FRACTION {

@@ -309,8 +309,9 @@ pub struct SolveSection {
     /// Fix k3 at 0 (and say so) when the data leave it undetermined: within 2σ of 0 while 1σ moves the
     /// image border by over a pixel ([`crate::calib::insignificant_at_border`]).
     pub fix_undetermined_k3: bool,
-    /// `equal` (every corner alike) or `covariance` (each corner by the inverse of its own fit's
-    /// covariance, [`crate::calib::Weighting`]). `equal` by default while the detector's noise-free
+    /// `equal` (every corner alike, but for the few the detector rates much worse than the median,
+    /// such as a grazing face's: [`crate::calib::Weighting::Equal`]) or `covariance` (each corner by
+    /// the inverse of its own fit's covariance, [`crate::calib::Weighting`]). `equal` by default while the detector's noise-free
     /// bias is as large as its noise: on the synthetic station the covariance-weighted σ are then
     /// smaller but miss that bias (χ² of fx, fy, cx, cy against the truth 34 / 16 / 24 against
     /// 17 / 7.5 / 10 equally weighted, seeds 1–3, `examples/station_chi2.rs`; issue 29).
@@ -434,6 +435,23 @@ pub struct RigSection {
     pub path: Option<PathBuf>,
 }
 
+/// `[detect]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DetectSection {
+    /// Look again at full resolution where the half-resolution front end left corners it could not
+    /// link (faces seen at 75°+ from frontal, squares 3–5 px across one way;
+    /// [`crate::detect::grid::find_and_assemble`]). Those corners carry their foreshortening bias
+    /// in their covariance ([`crate::detect::face::grazing_bias_px`]).
+    pub second_look: bool,
+}
+
+impl Default for DetectSection {
+    fn default() -> Self {
+        DetectSection { second_look: true }
+    }
+}
+
 /// The whole file.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -443,6 +461,7 @@ pub struct StationConfig {
     pub rig: RigSection,
     pub plan: PlanSection,
     pub synthetic: SyntheticSection,
+    pub detect: DetectSection,
     pub solve: SolveSection,
     pub qa: QaSection,
     pub output: OutputSection,

@@ -409,6 +409,9 @@ fn capture_poses(
         .map(|_| CornerFinder::new())
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| StationError::Detect(e.to_string()))?;
+    for f in &mut finders {
+        f.set_second_look(cfg.detect.second_look);
+    }
     // Homing gets twice the move timeout (hardware::open_turntable); past that, let the watchdog see.
     let move_limit =
         Duration::from_secs(cfg.turntable.move_timeout_s) * 2 + Duration::from_secs(10);
