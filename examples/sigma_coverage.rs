@@ -111,10 +111,15 @@ fn main() {
             let v: Vec<_> = frames
                 .iter()
                 .filter(|(_, d)| !d.faces.is_empty())
-                .map(|(_, d)| d.to_view("refit"))
+                .enumerate()
+                .map(|(k, (_, d))| d.to_view(&format!("refit{k}")))
                 .collect();
-            let Ok(cal) = calib::solve(&v, camera.image_size, &SolveOptions::default()) else {
-                break;
+            let cal = match calib::solve(&v, camera.image_size, &SolveOptions::default()) {
+                Ok(cal) => cal,
+                Err(e) => {
+                    println!("realisation {r}: no refit ({e})");
+                    break;
+                }
             };
             for (img, det) in &mut frames {
                 refine_with_camera(img, det, &cal.camera).unwrap();
