@@ -134,11 +134,12 @@ fn row_sums_box(row: &[u8], r: usize, pre: &mut [u32], ob: &mut [u16]) {
     }
 }
 
-/// The dark pixels of the adaptive threshold, one byte per pixel (1 = dark): the 3 × 3 mean
-/// around a pixel at least [`THRESHOLD_OFFSET`] below the mean of the [`BOX_PX`] box around it
-/// (both windows clipped by the frame). Separable running sums in integers; the rows' horizontal
-/// sums are kept only while the windows need them (rings of 3 and [`BOX_PX`] rows).
-fn threshold(img: &GrayImage) -> Vec<u8> {
+/// The dark pixels of the adaptive threshold, row by row (`row_out(y, row)`, one byte per pixel,
+/// 1 = dark): the 3 × 3 mean around a pixel at least [`THRESHOLD_OFFSET`] below the mean of the
+/// [`BOX_PX`] box around it (both windows clipped by the frame). Separable running sums in
+/// integers; the rows' horizontal sums are kept only while the windows need them (rings of 3 and
+/// [`BOX_PX`] rows).
+fn threshold(img: &GrayImage, mut row_out: impl FnMut(usize, &[u8])) {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let src = img.as_raw();
     let r = BOX_PX / 2;
@@ -153,7 +154,7 @@ fn threshold(img: &GrayImage) -> Vec<u8> {
     let nbx: Vec<i32> = (0..w)
         .map(|x| ((x + r + 1).min(w) - x.saturating_sub(r)) as i32)
         .collect();
-    let mut dark = vec![0u8; w * h];
+    let mut out = vec![0u8; w];
     let mut col = vec![0i32; w];
     let mut s3 = vec![0i32; w];
     // Rows whose sums are in the rings: 3-px sums of rows [0, next3), box sums of rows [lo, hi).
@@ -192,18 +193,32 @@ fn threshold(img: &GrayImage) -> Vec<u8> {
                 *t += i32::from(v);
             }
         }
-        let out = &mut dark[y * w..(y + 1) * w];
-        for ((o, (&t, &c)), (&nx3, &nxb)) in out
-            .iter_mut()
-            .zip(s3.iter().zip(&col))
-            .zip(n3x.iter().zip(&nbx))
-        {
-            let (n3, nb) = (nx3 * n3y, nxb * nby);
+        let dark = |x: usize| {
+            let (n3, nb) = (n3x[x] * n3y, nbx[x] * nby);
             // t / n3 < c / nb − offset, in integers.
-            *o = u8::from(t * nb < n3 * (c - THRESHOLD_OFFSET * nb));
+            u8::from(s3[x] * nb < n3 * (col[x] - THRESHOLD_OFFSET * nb))
+        };
+        if n3y == 3 && nby == nb_ring as i32 && w > 2 * r {
+            // Away from the frame's border neither window is clipped: constant pixel counts
+            // (the same comparison, kept branch-free for the compiler to vectorise).
+            let (n3, nb) = (9, (nb_ring * nb_ring) as i32);
+            for x in (0..r).chain(w - r..w) {
+                out[x] = dark(x);
+            }
+            for ((o, &t), &c) in out[r..w - r]
+                .iter_mut()
+                .zip(&s3[r..w - r])
+                .zip(&col[r..w - r])
+            {
+                *o = u8::from(t * nb < n3 * (c - THRESHOLD_OFFSET * nb));
+            }
+        } else {
+            for x in 0..w {
+                out[x] = dark(x);
+            }
         }
+        row_out(y, &out);
     }
-    dark
 }
 
 /// One 4-connected dark region: per image row, its leftmost and rightmost pixel.
@@ -214,63 +229,122 @@ struct Region {
     bbox: [u32; 4],
 }
 
-/// The dark regions at least `min_side` px wide or high.
-fn regions(dark: &mut [u8], w: usize, h: usize, min_side: f64) -> Vec<Region> {
-    let mut out = Vec::new();
-    let mut stack: Vec<u32> = Vec::new();
-    // Per image row, the region's leftmost and rightmost pixel (reset after each region).
-    let mut row_min = vec![u32::MAX; h];
-    let mut row_max = vec![0u32; h];
-    let mut start = 0;
-    while let Some(k) = dark[start..].iter().position(|&d| d == 1) {
-        start += k;
-        dark[start] = 2;
-        stack.push(start as u32);
-        let mut pixels = 0usize;
-        let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0usize, usize::MAX, 0usize);
-        while let Some(p) = stack.pop() {
-            let p = p as usize;
-            let (x, y) = (p % w, p / w);
-            pixels += 1;
-            x0 = x0.min(x);
-            x1 = x1.max(x);
-            y0 = y0.min(y);
-            y1 = y1.max(y);
-            row_min[y] = row_min[y].min(x as u32);
-            row_max[y] = row_max[y].max(x as u32);
-            if x > 0 && dark[p - 1] == 1 {
-                dark[p - 1] = 2;
-                stack.push((p - 1) as u32);
+/// A horizontal run of dark pixels: row, first and last pixel.
+#[derive(Clone, Copy)]
+struct Run {
+    y: u32,
+    x0: u32,
+    x1: u32,
+}
+
+/// The runs of dark pixels of the adaptive threshold, in raster order, and where each row's
+/// runs start (`h + 1` entries).
+fn dark_runs(img: &GrayImage) -> (Vec<Run>, Vec<usize>) {
+    let mut runs = Vec::new();
+    let mut row_start = Vec::with_capacity(img.height() as usize + 1);
+    threshold(img, |y, row| {
+        row_start.push(runs.len());
+        let mut x = 0;
+        while let Some(k) = row[x..].iter().position(|&d| d != 0) {
+            let x0 = x + k;
+            let len = row[x0..]
+                .iter()
+                .position(|&d| d == 0)
+                .unwrap_or(row.len() - x0);
+            runs.push(Run {
+                y: y as u32,
+                x0: x0 as u32,
+                x1: (x0 + len - 1) as u32,
+            });
+            x = x0 + len;
+        }
+    });
+    row_start.push(runs.len());
+    (runs, row_start)
+}
+
+/// The root of run `k`'s set, halving the path on the way.
+fn find(parent: &mut [u32], mut k: u32) -> u32 {
+    while parent[k as usize] != k {
+        let up = parent[parent[k as usize] as usize];
+        parent[k as usize] = up;
+        k = up;
+    }
+    k
+}
+
+/// The 4-connected dark regions at least `min_side` px wide or high, in the raster order of their
+/// first pixel. Run-length labelling: runs on neighbouring rows that share a column are joined
+/// (union–find, the earliest run the root), then each region's runs give its rows, pixel count and
+/// bounding box.
+fn regions(img: &GrayImage, min_side: f64) -> Vec<Region> {
+    let (runs, row_start) = dark_runs(img);
+    let mut parent: Vec<u32> = (0..runs.len() as u32).collect();
+    for y in 1..row_start.len().saturating_sub(1) {
+        let (mut i, mut j) = (row_start[y - 1], row_start[y]);
+        let (i_end, j_end) = (row_start[y], row_start[y + 1]);
+        while i < i_end && j < j_end {
+            let (a, b) = (runs[i], runs[j]);
+            if a.x0 <= b.x1 && b.x0 <= a.x1 {
+                let (ra, rb) = (find(&mut parent, i as u32), find(&mut parent, j as u32));
+                if ra != rb {
+                    let (lo, hi) = (ra.min(rb), ra.max(rb));
+                    parent[hi as usize] = lo;
+                }
             }
-            if x + 1 < w && dark[p + 1] == 1 {
-                dark[p + 1] = 2;
-                stack.push((p + 1) as u32);
-            }
-            if y > 0 && dark[p - w] == 1 {
-                dark[p - w] = 2;
-                stack.push((p - w) as u32);
-            }
-            if y + 1 < h && dark[p + w] == 1 {
-                dark[p + w] = 2;
-                stack.push((p + w) as u32);
+            if a.x1 < b.x1 {
+                i += 1;
+            } else {
+                j += 1;
             }
         }
-        if ((x1 - x0 + 1).max(y1 - y0 + 1) as f64) < min_side {
-            row_min[y0..=y1].fill(u32::MAX);
-            row_max[y0..=y1].fill(0);
+    }
+    // Per root: pixels and bounding box; a run's root comes no later than the run.
+    let mut stats = vec![(0usize, [u32::MAX, u32::MAX, 0u32, 0u32]); runs.len()];
+    let mut root = vec![0u32; runs.len()];
+    for k in 0..runs.len() {
+        let rt = find(&mut parent, k as u32);
+        root[k] = rt;
+        let run = runs[k];
+        let (pixels, b) = &mut stats[rt as usize];
+        *pixels += (run.x1 - run.x0 + 1) as usize;
+        *b = [
+            b[0].min(run.x0),
+            b[1].min(run.y),
+            b[2].max(run.x1),
+            b[3].max(run.y),
+        ];
+    }
+    let mut slot = vec![u32::MAX; runs.len()];
+    let mut out: Vec<Region> = Vec::new();
+    for k in 0..runs.len() {
+        if root[k] != k as u32 {
             continue;
         }
-        let rows: Vec<(u32, u32, u32)> = (y0..=y1)
-            .filter(|&y| row_min[y] != u32::MAX)
-            .map(|y| (y as u32, row_min[y], row_max[y]))
-            .collect();
-        row_min[y0..=y1].fill(u32::MAX);
-        row_max[y0..=y1].fill(0);
+        let (pixels, bbox) = stats[k];
+        let [x0, y0, x1, y1] = bbox;
+        if (f64::from((x1 - x0 + 1).max(y1 - y0 + 1))) < min_side {
+            continue;
+        }
+        slot[k] = out.len() as u32;
         out.push(Region {
-            rows,
+            rows: (y0..=y1).map(|y| (y, u32::MAX, 0)).collect(),
             pixels,
-            bbox: [x0 as u32, y0 as u32, x1 as u32, y1 as u32],
+            bbox,
         });
+    }
+    for (run, &rt) in runs.iter().zip(&root) {
+        let s = slot[rt as usize];
+        if s == u32::MAX {
+            continue;
+        }
+        let region = &mut out[s as usize];
+        let row = &mut region.rows[(run.y - region.bbox[1]) as usize];
+        row.1 = row.1.min(run.x0);
+        row.2 = row.2.max(run.x1);
+    }
+    for region in &mut out {
+        region.rows.retain(|r| r.1 != u32::MAX);
     }
     out
 }
@@ -286,14 +360,69 @@ fn hull(mut pts: Vec<Vector2<f64>>) -> Vec<Vector2<f64>> {
     if pts.len() < 3 {
         return pts;
     }
-    let mut lower: Vec<Vector2<f64>> = Vec::new();
-    for &p in &pts {
+    monotone_chain(&pts)
+}
+
+/// Convex hull of a region's pixels (their outer pixel edges), as [`hull`] gives it: the same
+/// vertices in the same order. Its rows are consecutive (the region is connected), so the
+/// candidates are, on each horizontal line between two rows, the leftmost and rightmost pixel edge
+/// of the two rows: already ordered by (y, x), and the monotone chain needs no sort.
+fn region_hull(rows: &[(u32, u32, u32)]) -> Vec<Vector2<f64>> {
+    let consecutive = rows.windows(2).all(|p| p[1].0 == p[0].0 + 1);
+    if rows.is_empty() || !consecutive {
+        let mut pts = Vec::with_capacity(rows.len() * 4);
+        for &(y, x0, x1) in rows {
+            let (y, x0, x1) = (f64::from(y), f64::from(x0), f64::from(x1));
+            pts.extend([
+                Vector2::new(x0 - 0.5, y - 0.5),
+                Vector2::new(x0 - 0.5, y + 0.5),
+                Vector2::new(x1 + 0.5, y - 0.5),
+                Vector2::new(x1 + 0.5, y + 0.5),
+            ]);
+        }
+        return hull(pts);
+    }
+    let n = rows.len();
+    let mut pts = Vec::with_capacity(2 * (n + 1));
+    for k in 0..=n {
+        let (y, l, r) = match (k.checked_sub(1).map(|i| rows[i]), rows.get(k)) {
+            (Some(a), Some(b)) => (f64::from(b.0) - 0.5, a.1.min(b.1), a.2.max(b.2)),
+            (None, Some(b)) => (f64::from(b.0) - 0.5, b.1, b.2),
+            (Some(a), None) => (f64::from(a.0) + 0.5, a.1, a.2),
+            (None, None) => continue,
+        };
+        pts.push(Vector2::new(f64::from(l) - 0.5, y));
+        pts.push(Vector2::new(f64::from(r) + 0.5, y));
+    }
+    let mut out = monotone_chain(&pts);
+    // Ordered by (y, x), the chain runs the other way round: turn it to [`hull`]'s orientation
+    // and start, the least (x, y).
+    if polygon_area(&out) < 0.0 {
+        out.reverse();
+    }
+    if let Some(first) = (0..out.len()).min_by(|&a, &b| {
+        let (p, q) = (out[a], out[b]);
+        p.x.total_cmp(&q.x).then(p.y.total_cmp(&q.y))
+    }) {
+        out.rotate_left(first);
+    }
+    out
+}
+
+/// Andrew's monotone chain on points sorted lexicographically (in either coordinate order), no
+/// two equal; collinear points dropped.
+fn monotone_chain(pts: &[Vector2<f64>]) -> Vec<Vector2<f64>> {
+    if pts.len() < 3 {
+        return pts.to_vec();
+    }
+    let mut lower: Vec<Vector2<f64>> = Vec::with_capacity(pts.len());
+    for &p in pts {
         while lower.len() >= 2 && cross(lower[lower.len() - 2], lower[lower.len() - 1], p) <= 0.0 {
             lower.pop();
         }
         lower.push(p);
     }
-    let mut upper: Vec<Vector2<f64>> = Vec::new();
+    let mut upper: Vec<Vector2<f64>> = Vec::with_capacity(pts.len());
     for &p in pts.iter().rev() {
         while upper.len() >= 2 && cross(upper[upper.len() - 2], upper[upper.len() - 1], p) <= 0.0 {
             upper.pop();
@@ -410,21 +539,23 @@ pub fn apply(h: &Matrix3<f64>, p: Vector2<f64>) -> Option<Vector2<f64>> {
 }
 
 fn bilinear(img: &GrayImage, p: Vector2<f64>) -> Option<f64> {
-    let (w, h) = (img.width() as f64, img.height() as f64);
+    let (wu, hu) = (img.width() as usize, img.height() as usize);
+    let (w, h) = (wu as f64, hu as f64);
     if !(p.x >= 0.0 && p.y >= 0.0 && p.x <= w - 1.0 && p.y <= h - 1.0) {
         return None;
     }
-    let (x0, y0) = (p.x.floor(), p.y.floor());
-    let (fx, fy) = (p.x - x0, p.y - y0);
-    let (x0, y0) = (x0 as u32, y0 as u32);
-    let x1 = (x0 + 1).min(img.width() - 1);
-    let y1 = (y0 + 1).min(img.height() - 1);
-    let g = |x: u32, y: u32| f64::from(img.get_pixel(x, y).0[0]);
+    // Non-negative: truncation is the floor.
+    let (x0, y0) = (p.x as usize, p.y as usize);
+    let (fx, fy) = (p.x - x0 as f64, p.y - y0 as f64);
+    let x1 = (x0 + 1).min(wu - 1);
+    let y1 = (y0 + 1).min(hu - 1);
+    let src = img.as_raw();
+    let (r0, r1) = (&src[y0 * wu..(y0 + 1) * wu], &src[y1 * wu..(y1 + 1) * wu]);
     Some(
-        g(x0, y0) * (1.0 - fx) * (1.0 - fy)
-            + g(x1, y0) * fx * (1.0 - fy)
-            + g(x0, y1) * (1.0 - fx) * fy
-            + g(x1, y1) * fx * fy,
+        f64::from(r0[x0]) * (1.0 - fx) * (1.0 - fy)
+            + f64::from(r0[x1]) * fx * (1.0 - fy)
+            + f64::from(r1[x0]) * (1.0 - fx) * fy
+            + f64::from(r1[x1]) * fx * fy,
     )
 }
 
@@ -562,35 +693,25 @@ pub fn decode(
         }
     }
     let max = dict.max_correction_bits();
+    // A rotation permutes the bits, so a code rotated `rot` times is as far from the read as the
+    // code from the read rotated back (`4 − rot` times): the read is rotated, not every code.
+    let mut back = [read; 4];
+    for rot in [3, 2, 1] {
+        back[rot] = rotate_code(back[(rot + 1) % 4], n);
+    }
     let mut best: Option<(u32, u32, usize)> = None; // (distance, id, rotation)
+    let mut nearest = u32::MAX;
     for (id, &code) in dict.codes().iter().enumerate() {
-        let mut rotated = code;
-        for rot in 0..4 {
-            let d = (rotated ^ read).count_ones();
+        for (rot, &r) in back.iter().enumerate() {
+            let d = (code ^ r).count_ones();
+            nearest = nearest.min(d);
             if d <= max && best.is_none_or(|b| d < b.0) {
                 best = Some((d, id as u32, rot));
             }
-            rotated = rotate_code(rotated, n);
         }
     }
-    let (distance, id, rot) = match best {
-        Some(b) => b,
-        None => {
-            let nearest = dict
-                .codes()
-                .iter()
-                .flat_map(|&code| {
-                    let mut r = code;
-                    (0..4).map(move |_| {
-                        let d = (r ^ read).count_ones();
-                        r = rotate_code(r, n);
-                        d
-                    })
-                })
-                .min()
-                .unwrap_or(u32::MAX);
-            return Err(DecodeMiss::Distance(nearest));
-        }
+    let Some((distance, id, rot)) = best else {
+        return Err(DecodeMiss::Distance(nearest));
     };
     Ok(Marker {
         bits: n,
@@ -735,9 +856,8 @@ pub fn marker_candidates(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Candidate
     };
     let min_side = (min_bits + 2) as f64 * MIN_CELL_PX;
     let max_side = w.min(h) as f64 / 2.0;
-    let mut dark = threshold(img);
     let mut out = Vec::new();
-    for region in regions(&mut dark, w, h, min_side) {
+    for region in regions(img, min_side) {
         let (quad, outcome) = examine(img, &region, dicts, (w, h), min_side, max_side);
         out.push(Candidate {
             bbox: region.bbox,
@@ -766,17 +886,7 @@ fn examine(
     if x0 == 0 || y0 == 0 || x1 as usize + 1 == w || y1 as usize + 1 == h {
         return (None, CandidateOutcome::FrameBorder);
     }
-    let mut pts = Vec::with_capacity(region.rows.len() * 4);
-    for &(y, x0, x1) in &region.rows {
-        let (y, x0, x1) = (f64::from(y), f64::from(x0), f64::from(x1));
-        pts.extend([
-            Vector2::new(x0 - 0.5, y - 0.5),
-            Vector2::new(x0 - 0.5, y + 0.5),
-            Vector2::new(x1 + 0.5, y - 0.5),
-            Vector2::new(x1 + 0.5, y + 0.5),
-        ]);
-    }
-    let hl = simplify(hull(pts), 0.7);
+    let hl = simplify(region_hull(&region.rows), 0.7);
     let Some(quad) = largest_quad(&hl) else {
         return (None, CandidateOutcome::NotQuad);
     };
