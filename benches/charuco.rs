@@ -48,11 +48,27 @@ fn main() {
         let mut all = Vec::new();
         let mut markers_ms = Vec::new();
         let (mut corners, mut markers) = (0, 0);
+        // Regions examined, by outcome (charuco::CandidateOutcome).
+        let mut outcomes = [0usize; 8];
         for (k, pose) in poses.iter().enumerate() {
             let img = frame(&rig, &camera, pose, &settings, (label, k));
             let mut finder = CornerFinder::new().unwrap();
             let det = detect(&mut finder, &img, &rig).unwrap();
             let found = charuco::find_markers(&img, &[dict]);
+            for c in charuco::marker_candidates(&img, &[dict]) {
+                use charuco::CandidateOutcome as O;
+                let slot = match c.outcome {
+                    O::Size => 0,
+                    O::FrameBorder => 1,
+                    O::NotQuad => 2,
+                    O::NotDecoded(charuco::DecodeMiss::Geometry) => 3,
+                    O::NotDecoded(charuco::DecodeMiss::Contrast) => 4,
+                    O::NotDecoded(charuco::DecodeMiss::Border(_)) => 5,
+                    O::NotDecoded(charuco::DecodeMiss::Distance(_)) => 6,
+                    O::Decoded(_) => 7,
+                };
+                outcomes[slot] += 1;
+            }
             corners += det.faces.iter().map(|f| f.corners.len()).sum::<usize>();
             markers += found.len();
             for f in &det.faces {
@@ -91,6 +107,19 @@ fn main() {
             reps,
             poses.len(),
             markers_ms[markers_ms.len() / 2]
+        );
+        println!(
+            "    regions examined in the {} frames: {} too small or large, {} on the frame's border, {} no quadrilateral, {} not decoded (geometry {}, contrast {}, border {}, distance {}), {} decoded",
+            poses.len(),
+            outcomes[0],
+            outcomes[1],
+            outcomes[2],
+            outcomes[3..7].iter().sum::<usize>(),
+            outcomes[3],
+            outcomes[4],
+            outcomes[5],
+            outcomes[6],
+            outcomes[7]
         );
     }
     if let Ok(file) = std::env::var("CUBECAL_BENCH_DUMP") {

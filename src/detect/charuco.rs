@@ -89,64 +89,58 @@ pub struct CharucoDetection {
     pub markers: Vec<Marker>,
 }
 
-/// One row's horizontal sums over 3 px, clipped by the row's ends.
-fn row_sums3(row: &[u8], o3: &mut [u16]) {
-    let w = row.len();
-    let clipped = |x: usize| -> u16 {
-        row[x.saturating_sub(1)..(x + 2).min(w)]
-            .iter()
-            .map(|&v| u16::from(v))
-            .sum()
-    };
-    if w < 3 {
-        for x in 0..w {
-            o3[x] = clipped(x);
+/// Sums over windows of `2r + 1` values of `v` (clipped by its ends), into `out`: differences of
+/// running sums (`pre`, scratch); three neighbours added directly. The differences and additions
+/// run over whole rows, which the compiler vectorises (in u16: callers keep the sums below 2¹⁶).
+fn window_sums(v: &[u16], r: usize, out: &mut [u16], pre: &mut [u32]) {
+    let w = v.len().min(out.len());
+    if r == 1 && w >= 3 {
+        let (l, m, rt) = (&v[..w - 2], &v[1..w - 1], &v[2..w]);
+        for (o, ((&a, &b), &c)) in out[1..w - 1].iter_mut().zip(l.iter().zip(m).zip(rt)) {
+            *o = a + b + c;
         }
+        out[0] = v[0] + v[1];
+        out[w - 1] = v[w - 2] + v[w - 1];
         return;
     }
-    for (o, t) in o3[1..w - 1].iter_mut().zip(row.windows(3)) {
-        *o = u16::from(t[0]) + u16::from(t[1]) + u16::from(t[2]);
-    }
-    o3[0] = clipped(0);
-    o3[w - 1] = clipped(w - 1);
-}
-
-/// One row's horizontal sums over the `2r + 1` px box, clipped by the row's ends; `pre` is
-/// scratch of `row.len() + 1`.
-fn row_sums_box(row: &[u8], r: usize, pre: &mut [u32], ob: &mut [u16]) {
-    let w = row.len();
+    let pre = &mut pre[..w + 1];
+    pre[0] = 0;
     for x in 0..w {
-        pre[x + 1] = pre[x] + u32::from(row[x]);
+        pre[x + 1] = pre[x] + u32::from(v[x]);
     }
     let clipped = |x: usize| (pre[(x + r + 1).min(w)] - pre[x.saturating_sub(r)]) as u16;
     if w > 2 * r + 1 {
-        // Away from the ends the box needs no clipping (the common case, kept branch-free).
         for x in (0..r).chain(w - r..w) {
-            ob[x] = clipped(x);
+            out[x] = clipped(x);
         }
-        for (x, o) in ob.iter_mut().enumerate().take(w - r).skip(r) {
-            *o = (pre[x + r + 1] - pre[x - r]) as u16;
+        let n = w - 2 * r;
+        let (hi, lo) = (&pre[2 * r + 1..2 * r + 1 + n], &pre[..n]);
+        for (o, (&p, &q)) in out[r..r + n].iter_mut().zip(hi.iter().zip(lo)) {
+            *o = (p - q) as u16;
         }
     } else {
         for x in 0..w {
-            ob[x] = clipped(x);
+            out[x] = clipped(x);
         }
     }
 }
 
+// The fast path of [`threshold`] compares in u16: the box's sum and the 3 × 3 sum scaled to it
+// must stay below 2¹⁶, and the box's pixel count must be a multiple of the 3 × 3 window's.
+const _: () = assert!(BOX_PX * BOX_PX * (255 + THRESHOLD_OFFSET as usize) <= u16::MAX as usize);
+const _: () = assert!(BOX_PX % 3 == 0 && BOX_PX % 2 == 1);
+
 /// The dark pixels of the adaptive threshold, row by row (`row_out(y, row)`, one byte per pixel,
 /// 1 = dark): the 3 × 3 mean around a pixel at least [`THRESHOLD_OFFSET`] below the mean of the
-/// [`BOX_PX`] box around it (both windows clipped by the frame). Separable running sums in
-/// integers; the rows' horizontal sums are kept only while the windows need them (rings of 3 and
-/// [`BOX_PX`] rows).
+/// [`BOX_PX`] box around it (both windows clipped by the frame). Separable sums in integers: per
+/// column, the sums over the box's rows (kept running: the entering row added, the leaving one
+/// taken off) and over the 3 rows around the pixel, then over the windows along the row
+/// ([`window_sums`]).
 fn threshold(img: &GrayImage, mut row_out: impl FnMut(usize, &[u8])) {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let src = img.as_raw();
     let r = BOX_PX / 2;
-    let nb_ring = 2 * r + 1;
-    let mut h3 = vec![0u16; 3 * w];
-    let mut hb = vec![0u16; nb_ring * w];
-    let mut pre = vec![0u32; w + 1];
+    let side = 2 * r + 1;
     // Pixels per window column span.
     let n3x: Vec<i32> = (0..w)
         .map(|x| ((x + 2).min(w) - x.saturating_sub(1)) as i32)
@@ -155,62 +149,66 @@ fn threshold(img: &GrayImage, mut row_out: impl FnMut(usize, &[u8])) {
         .map(|x| ((x + r + 1).min(w) - x.saturating_sub(r)) as i32)
         .collect();
     let mut out = vec![0u8; w];
-    let mut col = vec![0i32; w];
-    let mut s3 = vec![0i32; w];
-    // Rows whose sums are in the rings: 3-px sums of rows [0, next3), box sums of rows [lo, hi).
-    let mut next3 = 0usize;
+    // Column sums over the box's rows [lo, hi) and over the 3 rows around y; their window sums.
+    let mut vbox = vec![0u16; w];
+    let mut v3 = vec![0u16; w];
+    let mut sbox = vec![0u16; w];
+    let mut s3 = vec![0u16; w];
+    let mut pre = vec![0u32; w + 1];
     let (mut lo, mut hi) = (0usize, 0usize);
+    let row = |y: usize| &src[y * w..(y + 1) * w];
+    // The fast path's comparison: t / 9 < c / nb − offset ⇔ k·t + offset·nb < c, k = nb / 9.
+    let nb_full = side * side;
+    let k = (nb_full / 9) as u16;
+    let bias = (THRESHOLD_OFFSET as usize * nb_full) as u16;
     for y in 0..h {
         let (want_lo, want_hi) = (y.saturating_sub(r), (y + r + 1).min(h));
-        // Leaving rows first: the entering row takes the ring slot of the row `2r + 1` above it.
         while lo < want_lo {
-            for (c, &v) in col.iter_mut().zip(&hb[(lo % nb_ring) * w..][..w]) {
-                *c -= i32::from(v);
+            for (c, &v) in vbox.iter_mut().zip(row(lo)) {
+                *c -= u16::from(v);
             }
             lo += 1;
         }
         while hi < want_hi {
-            let ob = &mut hb[(hi % nb_ring) * w..][..w];
-            row_sums_box(&src[hi * w..(hi + 1) * w], r, &mut pre, ob);
-            for (c, &v) in col.iter_mut().zip(ob.iter()) {
-                *c += i32::from(v);
+            for (c, &v) in vbox.iter_mut().zip(row(hi)) {
+                *c += u16::from(v);
             }
             hi += 1;
         }
-        while next3 < (y + 2).min(h) {
-            row_sums3(
-                &src[next3 * w..(next3 + 1) * w],
-                &mut h3[(next3 % 3) * w..][..w],
-            );
-            next3 += 1;
-        }
-        let nby = (hi - lo) as i32;
         let (a, b) = (y.saturating_sub(1), (y + 2).min(h));
-        let n3y = (b - a) as i32;
-        s3.fill(0);
-        for yy in a..b {
-            for (t, &v) in s3.iter_mut().zip(&h3[(yy % 3) * w..][..w]) {
-                *t += i32::from(v);
+        if b - a == 3 {
+            let (p, q, u) = (row(a), row(a + 1), row(a + 2));
+            for (c, ((&x, &y), &z)) in v3.iter_mut().zip(p.iter().zip(q).zip(u)) {
+                *c = u16::from(x) + u16::from(y) + u16::from(z);
+            }
+        } else {
+            v3.fill(0);
+            for yy in a..b {
+                for (c, &v) in v3.iter_mut().zip(row(yy)) {
+                    *c += u16::from(v);
+                }
             }
         }
+        window_sums(&vbox, r, &mut sbox, &mut pre);
+        window_sums(&v3, 1, &mut s3, &mut pre);
+        let nby = (hi - lo) as i32;
+        let n3y = (b - a) as i32;
         let dark = |x: usize| {
             let (n3, nb) = (n3x[x] * n3y, nbx[x] * nby);
             // t / n3 < c / nb − offset, in integers.
-            u8::from(s3[x] * nb < n3 * (col[x] - THRESHOLD_OFFSET * nb))
+            u8::from(i32::from(s3[x]) * nb < n3 * (i32::from(sbox[x]) - THRESHOLD_OFFSET * nb))
         };
-        if n3y == 3 && nby == nb_ring as i32 && w > 2 * r {
-            // Away from the frame's border neither window is clipped: constant pixel counts
-            // (the same comparison, kept branch-free for the compiler to vectorise).
-            let (n3, nb) = (9, (nb_ring * nb_ring) as i32);
+        if n3y == 3 && nby == side as i32 && w > 2 * r {
+            // Away from the frame's border neither window is clipped: constant pixel counts.
             for x in (0..r).chain(w - r..w) {
                 out[x] = dark(x);
             }
             for ((o, &t), &c) in out[r..w - r]
                 .iter_mut()
                 .zip(&s3[r..w - r])
-                .zip(&col[r..w - r])
+                .zip(&sbox[r..w - r])
             {
-                *o = u8::from(t * nb < n3 * (c - THRESHOLD_OFFSET * nb));
+                *o = u8::from(k * t + bias < c);
             }
         } else {
             for x in 0..w {
@@ -538,24 +536,26 @@ pub fn apply(h: &Matrix3<f64>, p: Vector2<f64>) -> Option<Vector2<f64>> {
     (q.z.abs() > 1e-12).then(|| Vector2::new(q.x / q.z, q.y / q.z))
 }
 
+#[inline]
 fn bilinear(img: &GrayImage, p: Vector2<f64>) -> Option<f64> {
     let (wu, hu) = (img.width() as usize, img.height() as usize);
-    let (w, h) = (wu as f64, hu as f64);
-    if !(p.x >= 0.0 && p.y >= 0.0 && p.x <= w - 1.0 && p.y <= h - 1.0) {
+    if !(p.x >= 0.0 && p.y >= 0.0 && p.x <= (wu - 1) as f64 && p.y <= (hu - 1) as f64) {
         return None;
     }
-    // Non-negative: truncation is the floor.
-    let (x0, y0) = (p.x as usize, p.y as usize);
+    // Non-negative and within the frame: truncation is the floor (through u32, a cheaper
+    // conversion than to usize).
+    let (x0, y0) = (p.x as u32 as usize, p.y as u32 as usize);
     let (fx, fy) = (p.x - x0 as f64, p.y - y0 as f64);
-    let x1 = (x0 + 1).min(wu - 1);
-    let y1 = (y0 + 1).min(hu - 1);
-    let src = img.as_raw();
-    let (r0, r1) = (&src[y0 * wu..(y0 + 1) * wu], &src[y1 * wu..(y1 + 1) * wu]);
+    // The next pixel right and down, or the same one on the last column and row.
+    let dx = usize::from(x0 + 1 < wu);
+    let dy = if y0 + 1 < hu { wu } else { 0 };
+    let i = y0 * wu + x0;
+    let g = img.as_raw().get(i..=i + dy + dx)?;
     Some(
-        f64::from(r0[x0]) * (1.0 - fx) * (1.0 - fy)
-            + f64::from(r0[x1]) * fx * (1.0 - fy)
-            + f64::from(r1[x0]) * (1.0 - fx) * fy
-            + f64::from(r1[x1]) * fx * fy,
+        f64::from(g[0]) * (1.0 - fx) * (1.0 - fy)
+            + f64::from(g[dx]) * fx * (1.0 - fy)
+            + f64::from(g[dy]) * (1.0 - fx) * fy
+            + f64::from(g[dy + dx]) * fx * fy,
     )
 }
 
