@@ -951,6 +951,41 @@ fn marker_board_corners(face: &Face, ch: &Charuco, sq: (usize, usize)) -> [Vecto
     ]
 }
 
+/// Share of the fit window's half-extent by which [`fit_corner`] moves its start when the fit
+/// from the markers' prediction finds no X-junction.
+pub const RESTART_SHIFT: f64 = 0.3;
+
+/// Fit the corner predicted at `p0` (steps `a`, `b` scaled to the white gap around it). The window
+/// reaches within a pixel or so of the markers, so a prediction a pixel off — markers printed or
+/// drawn a pixel away from where the board puts them, as OpenCV 4.6's `CharucoBoard.draw` does
+/// at 32 px a square — brings a marker's edge into it and the fit finds no X-junction
+/// ([`refine::RefineFailure::NotX`]) or is pulled away (`Moved`). The fit is then started again
+/// from the eight points [`RESTART_SHIFT`] of the window's half-extent away along the steps (1 px
+/// at 32 px a square with markers of 0.75 of a square), and the first that succeeds is taken: a fit
+/// moves its corner at most [`refine::MAX_SHIFT`] of the steps from its start, so whatever it finds
+/// lies within half a step (a twelfth of a square with such markers) of the prediction, where no
+/// other corner is.
+fn fit_corner(
+    img: &GrayImage,
+    p0: Vector2<f64>,
+    a: Vector2<f64>,
+    b: Vector2<f64>,
+) -> Option<refine::Refined> {
+    use refine::RefineFailure::{Moved, NotX};
+    match refine::refine_near_border(img, p0, a, b) {
+        Ok(fit) => return Some(fit),
+        Err(NotX | Moved) => {}
+        Err(_) => return None,
+    }
+    let (da, db) = (
+        a * RESTART_SHIFT * refine::WINDOW,
+        b * RESTART_SHIFT * refine::WINDOW,
+    );
+    [da + db, da - db, -da + db, -da - db, da, -da, db, -db]
+        .into_iter()
+        .find_map(|d| refine::refine_near_border(img, p0 + d, a, b).ok())
+}
+
 /// Detect the ChArUco faces of `rig` in a frame.
 pub fn detect(img: &GrayImage, rig: &Rig) -> CharucoDetection {
     let mut dicts: Vec<Dictionary> = Vec::new();
@@ -1071,7 +1106,7 @@ fn detect_face(
                 continue;
             }
             let p0 = (c0 + c1) / 2.0;
-            let Ok(fit) = refine::refine_near_border(img, p0, a * scale, b * scale) else {
+            let Some(fit) = fit_corner(img, p0, a * scale, b * scale) else {
                 continue;
             };
             let (row, col) = (face.rows - 1 - cy, cx);
