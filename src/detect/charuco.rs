@@ -1136,3 +1136,161 @@ fn detect_face(
         identity: None,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// A frame of blobs (dark discs and rings on light, some touching the border) with noise, of
+    /// odd sides so that no window fits it evenly.
+    fn blobs(w: u32, h: u32, seed: u64) -> GrayImage {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let discs: Vec<(f64, f64, f64, f64)> = (0..40)
+            .map(|_| {
+                (
+                    rng.random_range(-5.0..f64::from(w) + 5.0),
+                    rng.random_range(-5.0..f64::from(h) + 5.0),
+                    rng.random_range(2.0..14.0),
+                    rng.random_range(0.0..0.7),
+                )
+            })
+            .collect();
+        GrayImage::from_fn(w, h, |x, y| {
+            let (x, y) = (f64::from(x), f64::from(y));
+            let dark = discs.iter().any(|&(cx, cy, r, hole)| {
+                let d = ((x - cx).powi(2) + (y - cy).powi(2)).sqrt();
+                d < r && d >= hole * r
+            });
+            let v = if dark { 60.0 } else { 200.0 } + rng.random_range(-12.0..12.0);
+            image::Luma([v as u8])
+        })
+    }
+
+    /// The threshold by its definition: the clipped windows' sums taken pixel by pixel.
+    fn threshold_direct(img: &GrayImage) -> Vec<u8> {
+        let (w, h) = (img.width() as i64, img.height() as i64);
+        let r = (BOX_PX / 2) as i64;
+        let at = |x: i64, y: i64| i64::from(img.get_pixel(x as u32, y as u32).0[0]);
+        let sum = |x: i64, y: i64, r: i64| {
+            let (mut s, mut n) = (0, 0);
+            for yy in (y - r).max(0)..(y + r + 1).min(h) {
+                for xx in (x - r).max(0)..(x + r + 1).min(w) {
+                    s += at(xx, yy);
+                    n += 1;
+                }
+            }
+            (s, n)
+        };
+        let off = i64::from(THRESHOLD_OFFSET);
+        let mut out = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let ((t, n3), (c, nb)) = (sum(x, y, 1), sum(x, y, r));
+                out.push(u8::from(t * nb < n3 * (c - off * nb)));
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn threshold_matches_its_definition_to_the_pixel() {
+        for (w, h, seed) in [(97, 61, 1), (40, 33, 2), (16, 9, 3), (7, 5, 4)] {
+            let img = blobs(w, h, seed);
+            let mut fast = Vec::new();
+            threshold(&img, |_, row| fast.extend_from_slice(row));
+            let direct = threshold_direct(&img);
+            let differ = fast.iter().zip(&direct).filter(|(a, b)| a != b).count();
+            let dark = direct.iter().filter(|&&d| d == 1).count();
+            assert!(dark > 0, "{w}×{h}: no dark pixel to compare");
+            assert_eq!(differ, 0, "{w}×{h}: {differ} pixels differ");
+        }
+    }
+
+    /// A region as the flood fill finds it: pixel count, bounding box, per row (y, first, last).
+    type RegionRef = (usize, [u32; 4], Vec<(u32, u32, u32)>);
+
+    #[test]
+    fn run_labelling_and_row_hull_match_flood_fill_and_sorted_hull() {
+        let img = blobs(181, 127, 5);
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        let mut dark = Vec::new();
+        threshold(&img, |_, row| dark.extend_from_slice(row));
+        // Reference: 4-connected flood fill from each unvisited dark pixel in raster order.
+        let mut seen = vec![false; w * h];
+        let mut reference: Vec<RegionRef> = Vec::new();
+        for start in 0..w * h {
+            if dark[start] == 0 || seen[start] {
+                continue;
+            }
+            seen[start] = true;
+            let mut stack = vec![start];
+            let mut pixels = Vec::new();
+            while let Some(p) = stack.pop() {
+                pixels.push(p);
+                let (x, y) = (p % w, p / w);
+                let mut near = Vec::new();
+                if x > 0 {
+                    near.push(p - 1);
+                }
+                if x + 1 < w {
+                    near.push(p + 1);
+                }
+                if y > 0 {
+                    near.push(p - w);
+                }
+                if y + 1 < h {
+                    near.push(p + w);
+                }
+                for q in near {
+                    if dark[q] == 1 && !seen[q] {
+                        seen[q] = true;
+                        stack.push(q);
+                    }
+                }
+            }
+            let xs = pixels.iter().map(|p| (p % w) as u32);
+            let ys = pixels.iter().map(|p| (p / w) as u32);
+            let bbox = [
+                xs.clone().min().unwrap_or(0),
+                ys.clone().min().unwrap_or(0),
+                xs.max().unwrap_or(0),
+                ys.max().unwrap_or(0),
+            ];
+            let rows = (bbox[1]..=bbox[3])
+                .map(|y| {
+                    let on: Vec<u32> = pixels
+                        .iter()
+                        .filter(|&&p| (p / w) as u32 == y)
+                        .map(|&p| (p % w) as u32)
+                        .collect();
+                    (
+                        y,
+                        on.iter().copied().min().unwrap_or(0),
+                        on.iter().copied().max().unwrap_or(0),
+                    )
+                })
+                .collect();
+            reference.push((pixels.len(), bbox, rows));
+        }
+        let found = regions(&img, 0.0);
+        assert!(found.len() > 20, "only {} regions", found.len());
+        assert_eq!(found.len(), reference.len(), "regions");
+        for (r, (pixels, bbox, rows)) in found.iter().zip(&reference) {
+            assert_eq!((r.pixels, r.bbox, &r.rows), (*pixels, *bbox, rows));
+            // The hull from the rows: the same vertices in the same order as from every pixel
+            // edge, sorted.
+            let mut pts = Vec::new();
+            for &(y, x0, x1) in rows {
+                let (y, x0, x1) = (f64::from(y), f64::from(x0), f64::from(x1));
+                pts.extend([
+                    Vector2::new(x0 - 0.5, y - 0.5),
+                    Vector2::new(x0 - 0.5, y + 0.5),
+                    Vector2::new(x1 + 0.5, y - 0.5),
+                    Vector2::new(x1 + 0.5, y + 0.5),
+                ]);
+            }
+            assert_eq!(region_hull(&r.rows), hull(pts), "region at {bbox:?}");
+        }
+    }
+}
