@@ -968,7 +968,10 @@ pub const RESTART_SHIFT: f64 = 0.3;
 /// at 32 px a square with markers of 0.75 of a square), and the first that succeeds is taken: a fit
 /// moves its corner at most [`refine::MAX_SHIFT`] of the steps from its start, so whatever it finds
 /// lies within half a step (a twelfth of a square with such markers) of the prediction, where no
-/// other corner is.
+/// other corner is. Measured: OpenCV 4.6's 10 × 10 board 72 → 81 of 81 corners (at most 0.001 px
+/// off); `charuco_eval` (24 poses) realistic 1881 → 1996 corners, RMS 0.0308 → 0.0315 px, hard
+/// 251 → 257, 0.1703 → 0.1704 px, no wrong label; the pyCamSet cube photos 2230 → 2278 corners
+/// and the pycalib wide-angle photos 1210 → 1211, none labelled otherwise than by OpenCV.
 fn fit_corner(
     img: &GrayImage,
     p0: Vector2<f64>,
