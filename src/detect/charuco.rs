@@ -971,7 +971,7 @@ pub const RESTART_SHIFT: f64 = 0.3;
 /// other corner is. Measured: OpenCV 4.6's 10 × 10 board 72 → 81 of 81 corners (at most 0.001 px
 /// off); `charuco_eval` (24 poses) realistic 1881 → 1996 corners, RMS 0.0308 → 0.0315 px, hard
 /// 251 → 257, 0.1703 → 0.1704 px, no wrong label; the pyCamSet cube photos 2230 → 2278 corners
-/// and the pycalib wide-angle photos 1210 → 1211, none labelled otherwise than by OpenCV.
+/// and the pycalib wide-angle photos 1210 → 1211, of those OpenCV labels none labelled otherwise.
 fn fit_corner(
     img: &GrayImage,
     p0: Vector2<f64>,
