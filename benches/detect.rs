@@ -140,57 +140,7 @@ fn main() {
         noise / cube
     );
     settle_bench(&rig, reps);
-    charuco_bench(reps);
-}
-
-/// Issue 33: the ChArUco cube (`fixtures/rigs/charuco_cube.toml`) at 1280×960, frames of the hard
-/// and realistic evaluation sets' look (`detect::score::EvalSet`, the realistic set's look on the
-/// hard set's 1280×960 camera): `detect` per frame (markers found and decoded, corners fitted), with
-/// the share spent finding and decoding markers. The bar is 10 ms per frame.
-fn charuco_bench(reps: usize) {
-    use cubecal::detect::charuco;
-    use cubecal::detect::score::EvalSet;
-    let path = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/fixtures/rigs/charuco_cube.toml"
-    );
-    let (rig, _) = Rig::load(std::path::Path::new(path)).unwrap();
-    let camera = EvalSet::Hard.camera();
-    let dict = rig.faces[0].charuco.as_ref().unwrap().dictionary;
-    for (label, settings) in [
-        ("hard", EvalSet::Hard.settings()),
-        ("realistic look", EvalSet::Realistic.settings()),
-    ] {
-        let poses = EvalSet::Hard.poses(&rig, 3);
-        let mut all = Vec::new();
-        let mut markers_ms = Vec::new();
-        let mut corners = 0;
-        for (k, pose) in poses.iter().enumerate() {
-            let img = render(&rig, &camera, pose, &settings, k as u64).unwrap();
-            let mut finder = CornerFinder::new().unwrap();
-            let det = detect(&mut finder, &img, &rig).unwrap();
-            corners += det.faces.iter().map(|f| f.corners.len()).sum::<usize>();
-            for _ in 0..reps {
-                let t = Instant::now();
-                std::hint::black_box(detect(&mut finder, &img, &rig).unwrap());
-                all.push(t.elapsed().as_secs_f64() * 1e3);
-                let t = Instant::now();
-                std::hint::black_box(charuco::find_markers(&img, &[dict]));
-                markers_ms.push(t.elapsed().as_secs_f64() * 1e3);
-            }
-        }
-        all.sort_by(f64::total_cmp);
-        markers_ms.sort_by(f64::total_cmp);
-        println!(
-            "charuco cube, {label} (1280×960): median {:.2} ms (min {:.2}, p90 {:.2}) over {} runs of {} frames ({corners} corners); markers alone median {:.2} ms",
-            all[all.len() / 2],
-            all[0],
-            all[all.len() * 9 / 10],
-            reps,
-            poses.len(),
-            markers_ms[markers_ms.len() / 2]
-        );
-    }
+    // The ChArUco cube has its own bench: benches/charuco.rs.
 }
 
 /// Issue 28: settling a frame's rejected grid with a known camera (`detect::settle`), on the cube
