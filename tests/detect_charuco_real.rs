@@ -215,19 +215,26 @@ fn pycalib_wide_board_labels_and_calibration_agree_with_opencv() {
             calib::solve(&views, [1280, 720], &opts).unwrap_or_else(|e| panic!("{e}"))
         }
     };
-    let spec = tmp.path().join("views.json");
-    std::fs::write(
-        &spec,
-        serde_json::json!({"image_size": [1280, 720], "rational": true,
-            "fix_k456": opts.fix.k4, "views": cv_views})
-        .to_string(),
-    )
-    .unwrap_or_else(|e| panic!("{e}"));
+    let spec = serde_json::json!({"image_size": [1280, 720], "rational": true,
+        "fix_k456": opts.fix.k4, "views": cv_views});
+    agrees_with_opencv(&py, tmp.path(), &spec, &cal);
+}
+
+/// OpenCV's calibrateCamera on `spec` (see tests/peers/charuco_opencv.py `--calibrate`), printed
+/// beside `cal`; fx, fy, cx, cy must agree within 3 of cubecal's σ.
+fn agrees_with_opencv(py: &str, dir: &Path, spec: &serde_json::Value, cal: &calib::Calibration) {
+    let path = dir.join("views.json");
+    std::fs::write(&path, spec.to_string()).unwrap_or_else(|e| panic!("{e}"));
     let cvcal: serde_json::Value = serde_json::from_slice(&run_peer(
-        &py,
-        &[OsStr::new("--calibrate"), spec.as_os_str()],
+        py,
+        &[OsStr::new("--calibrate"), path.as_os_str()],
     ))
     .unwrap_or_else(|e| panic!("{e}"));
+    eprintln!(
+        "cubecal RMS {:.3} px per coordinate, OpenCV RMS {:.3} px (√2 × per coordinate)",
+        cal.rms_px,
+        cvcal["rms"].as_f64().unwrap_or(f64::NAN)
+    );
     let cam = &cal.camera;
     let ours4 = [cam.fx(), cam.fy(), cam.cx(), cam.cy()];
     for (i, name) in ["fx", "fy", "cx", "cy"].iter().enumerate() {
@@ -315,39 +322,7 @@ fn pycamset_cube_labels_agree_with_opencv() {
     let image_size = [1920, 1080];
     let cal = calib::solve(&views, image_size, &SolveOptions::default())
         .unwrap_or_else(|e| panic!("{e}"));
-    let spec = tmp.path().join("views.json");
-    std::fs::write(
-        &spec,
-        serde_json::json!({"image_size": image_size, "rational": false, "views": cv_views})
-            .to_string(),
-    )
-    .unwrap_or_else(|e| panic!("{e}"));
-    let cvcal: serde_json::Value = serde_json::from_slice(&run_peer(
-        &py,
-        &[OsStr::new("--calibrate"), spec.as_os_str()],
-    ))
-    .unwrap_or_else(|e| panic!("{e}"));
-    eprintln!(
-        "{} face views; cubecal RMS {:.3} px, OpenCV RMS {:.3} px (√2 × per coordinate)",
-        views.len(),
-        cal.rms_px,
-        cvcal["rms"].as_f64().unwrap_or(f64::NAN)
-    );
-    let cam = &cal.camera;
-    let ours4 = [cam.fx(), cam.fy(), cam.cx(), cam.cy()];
-    for (i, name) in ["fx", "fy", "cx", "cy"].iter().enumerate() {
-        let theirs = cvcal["K"][i].as_f64().unwrap_or(f64::NAN);
-        let sigma = cal.std_dev[i];
-        eprintln!(
-            "{name}: cubecal {:.3} ± {sigma:.3}, OpenCV {theirs:.3} ± {:.3} ({:.2} σ)",
-            ours4[i],
-            cvcal["sigma"][i].as_f64().unwrap_or(f64::NAN),
-            (ours4[i] - theirs).abs() / sigma
-        );
-        assert!(
-            (ours4[i] - theirs).abs() <= 3.0 * sigma,
-            "{name}: {:.3} vs OpenCV's {theirs:.3}, more than 3σ ({sigma:.3}) apart",
-            ours4[i]
-        );
-    }
+    eprintln!("{} face views", views.len());
+    let spec = serde_json::json!({"image_size": image_size, "rational": false, "views": cv_views});
+    agrees_with_opencv(&py, tmp.path(), &spec, &cal);
 }
