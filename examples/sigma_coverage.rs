@@ -38,6 +38,14 @@ fn main() {
     // `exact`: the plain solve's σ; `inflated`: with the neighbour-correlation inflation.
     let inflate = args.get(4).is_some_and(|s| s == "inflated");
     let equal = args.get(4).is_some_and(|s| s == "equal");
+    let opts = SolveOptions {
+        weighting: if equal {
+            calib::Weighting::Equal
+        } else {
+            calib::Weighting::Covariance
+        },
+        ..SolveOptions::default()
+    };
     let mut noise_scale = Vec::new();
     let mut chi2 = Vec::new();
     let path = concat!(
@@ -167,14 +175,6 @@ fn main() {
             .map(|r| r.calibration)
         } else {
             let v: Vec<_> = views.iter().map(|v| v.to_view(&rig).unwrap()).collect();
-            let opts = SolveOptions {
-                weighting: if equal {
-                    calib::Weighting::Equal
-                } else {
-                    calib::Weighting::Covariance
-                },
-                ..SolveOptions::default()
-            };
             calib::solve(&v, camera.image_size, &opts).map(|mut c| {
                 if inflate {
                     calib::inflate_for_neighbour_correlation(&mut c, &views, &rig);
@@ -326,14 +326,6 @@ fn main() {
     // their mean error over the realisations (their bias), solved as above; then the bias of the
     // faces in one band of viewing angle only, the others exact. Printed as the error in units of
     // the mean reported σ (the z mean a bias alone gives).
-    let opts = SolveOptions {
-        weighting: if equal {
-            calib::Weighting::Equal
-        } else {
-            calib::Weighting::Covariance
-        },
-        ..SolveOptions::default()
-    };
     let mean_sigma: Vec<f64> = (0..5)
         .map(|j| sig.iter().map(|r| r[j]).sum::<f64>() / m)
         .collect();

@@ -102,26 +102,20 @@ fn main() {
                 v
             })
             .collect();
-        let c = cubecal::calib::solve(&stripped, obs.image_size, &opts).unwrap();
-        let plain = (
-            c.camera.params.to_vec(),
-            c.free_params
-                .iter()
-                .map(|s| s.to_string())
-                .collect::<Vec<_>>(),
-            c.covariance.clone(),
-            c.noise_scale,
-        );
-        let c = cubecal::calib::solve(&fit, obs.image_size, &opts).unwrap();
-        let equal = (
-            c.camera.params.to_vec(),
-            c.free_params
-                .iter()
-                .map(|s| s.to_string())
-                .collect::<Vec<_>>(),
-            c.covariance.clone(),
-            c.noise_scale,
-        );
+        let solved = |views: &[cubecal::calib::View]| {
+            let c = cubecal::calib::solve(views, obs.image_size, &opts).unwrap();
+            (
+                c.camera.params.to_vec(),
+                c.free_params
+                    .iter()
+                    .map(|s| s.to_string())
+                    .collect::<Vec<_>>(),
+                c.covariance.clone(),
+                c.noise_scale,
+            )
+        };
+        let plain = solved(&stripped);
+        let equal = solved(&fit);
         let mut line = format!("  seed {seed:2}:");
         for (slot, (params, free, cov, scale)) in [station, equal, plain].into_iter().enumerate() {
             let pos: Vec<usize> = NAMES
