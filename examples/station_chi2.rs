@@ -295,19 +295,14 @@ fn oracle(
         let Ok(c) = cubecal::calib::solve(&kept, size, &eq) else {
             continue;
         };
-        let pos: Vec<usize> = NAMES
-            .iter()
-            .map(|nm| c.free_params.iter().position(|f| f == nm).unwrap())
-            .collect();
-        let cv = DMatrix::from_fn(4, 4, |i, j| c.covariance[(pos[i], pos[j])]);
-        let e = DVector::from_iterator(4, (0..4).map(|k| c.camera.params[k] - truth.params[k]));
-        let chi2 = e.dot(&cv.clone().cholesky().unwrap().solve(&e));
+        let chi2 = c.chi2_against(&truth.params, &NAMES).unwrap();
+        let e = |k: usize| c.camera.params[k] - truth.params[k];
         println!(
             "    faces < {cut}° (equal weights): cx {:+.4} ± {:.4}, cy {:+.4} ± {:.4}, χ² {chi2:.2}",
-            e[2],
-            cv[(2, 2)].sqrt(),
-            e[3],
-            cv[(3, 3)].sqrt()
+            e(2),
+            c.std_dev[2],
+            e(3),
+            c.std_dev[3]
         );
     }
     let cols: Vec<String> = by_col
@@ -338,15 +333,14 @@ fn oracle(
     ] {
         opts.weighting = weighting;
         let c = cubecal::calib::solve(&sim, size, &opts).unwrap();
-        let pos: Vec<usize> = NAMES
-            .iter()
-            .map(|nm| c.free_params.iter().position(|f| f == nm).unwrap())
-            .collect();
-        let cv = DMatrix::from_fn(4, 4, |i, j| c.covariance[(pos[i], pos[j])]);
-        let e = DVector::from_iterator(4, (0..4).map(|k| c.camera.params[k] - truth.params[k]));
-        let chi2 = e.dot(&cv.clone().cholesky().unwrap().solve(&e));
+        let chi2 = c.chi2_against(&truth.params, &NAMES).unwrap();
         let z: Vec<String> = (0..4)
-            .map(|k| format!("{:+6.2}", e[k] / cv[(k, k)].sqrt()))
+            .map(|k| {
+                format!(
+                    "{:+6.2}",
+                    (c.camera.params[k] - truth.params[k]) / c.std_dev[k]
+                )
+            })
             .collect();
         println!("    oracle {weighting:?}: {} χ² {chi2:6.2}", z.join(" "));
     }

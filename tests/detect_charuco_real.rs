@@ -175,29 +175,12 @@ fn pycalib_wide_board_labels_and_calibration_agree_with_opencv() {
         let (x, y) = (id % board.cols, id / board.cols);
         board.corner_xyz(board.rows - 1 - y, x)
     };
-    let mut views = Vec::new();
-    let mut cv_views = Vec::new();
-    for (k, (o, c)) in mine.iter().zip(&cv).enumerate() {
-        let mut ids: Vec<usize> = c
-            .keys()
-            .filter(|key| o.contains_key(key))
-            .map(|key| key.1)
-            .collect();
-        ids.sort_unstable();
-        if ids.len() < 6 {
-            continue;
-        }
-        views.push(View {
-            name: format!("{k}"),
-            points: ids
-                .iter()
-                .map(|&id| Correspondence::new(xyz(id), o[&(0, id)]))
-                .collect(),
-        });
-        let p: Vec<[f64; 3]> = ids.iter().map(|&id| xyz(id).into()).collect();
-        let uv: Vec<[f64; 2]> = ids.iter().map(|&id| c[&(0, id)].into()).collect();
-        cv_views.push(serde_json::json!({"xyz": p, "uv": uv}));
-    }
+    let (views, cv_views): (Vec<View>, Vec<serde_json::Value>) = mine
+        .iter()
+        .zip(&cv)
+        .enumerate()
+        .filter_map(|(k, (o, c))| common_view(o, c, 0, 6, &xyz, format!("{k}")))
+        .unzip();
     // The rational model as the reference used; on OpenCV 4.6's corners (none near the frame's
     // edges) cubecal finds k4…k6 undetermined and refuses, where OpenCV returns a value: then both
     // hold k4, k5, k6 at 0.
@@ -218,6 +201,38 @@ fn pycalib_wide_board_labels_and_calibration_agree_with_opencv() {
     let spec = serde_json::json!({"image_size": [1280, 720], "rational": true,
         "fix_k456": opts.fix.k4, "views": cv_views});
     agrees_with_opencv(&py, tmp.path(), &spec, &cal);
+}
+
+/// The corners of face `fi` that both cubecal (`o`) and OpenCV (`c`) label in one photo, when there
+/// are at least `min`: cubecal's positions as a calibration view, OpenCV's as a view of the peer's
+/// `--calibrate` (both at `xyz` of the OpenCV corner id).
+fn common_view(
+    o: &HashMap<(usize, usize), Vector2<f64>>,
+    c: &HashMap<(usize, usize), Vector2<f64>>,
+    fi: usize,
+    min: usize,
+    xyz: &dyn Fn(usize) -> Vector3<f64>,
+    name: String,
+) -> Option<(View, serde_json::Value)> {
+    let mut ids: Vec<usize> = c
+        .keys()
+        .filter(|key| key.0 == fi && o.contains_key(key))
+        .map(|key| key.1)
+        .collect();
+    ids.sort_unstable();
+    if ids.len() < min {
+        return None;
+    }
+    let view = View {
+        name,
+        points: ids
+            .iter()
+            .map(|&id| Correspondence::new(xyz(id), o[&(fi, id)]))
+            .collect(),
+    };
+    let p: Vec<[f64; 3]> = ids.iter().map(|&id| xyz(id).into()).collect();
+    let uv: Vec<[f64; 2]> = ids.iter().map(|&id| c[&(fi, id)].into()).collect();
+    Some((view, serde_json::json!({"xyz": p, "uv": uv})))
 }
 
 /// OpenCV's calibrateCamera on `spec` (see tests/peers/charuco_opencv.py `--calibrate`), printed
@@ -290,15 +305,6 @@ fn pycamset_cube_labels_agree_with_opencv() {
     let mut cv_views = Vec::new();
     for (k, (o, c)) in mine.iter().zip(&cv).enumerate() {
         for (fi, face) in rig.faces.iter().enumerate() {
-            let mut ids: Vec<usize> = c
-                .keys()
-                .filter(|key| key.0 == fi && o.contains_key(key))
-                .map(|key| key.1)
-                .collect();
-            ids.sort_unstable();
-            if ids.len() < 8 {
-                continue;
-            }
             let xyz = |id: usize| {
                 let (col, row) = (id % face.cols, face.rows - 1 - id / face.cols);
                 Vector3::new(
@@ -307,16 +313,10 @@ fn pycamset_cube_labels_agree_with_opencv() {
                     0.0,
                 )
             };
-            views.push(View {
-                name: format!("{k}/{}", face.name),
-                points: ids
-                    .iter()
-                    .map(|&id| Correspondence::new(xyz(id), o[&(fi, id)]))
-                    .collect(),
-            });
-            let p: Vec<[f64; 3]> = ids.iter().map(|&id| xyz(id).into()).collect();
-            let uv: Vec<[f64; 2]> = ids.iter().map(|&id| c[&(fi, id)].into()).collect();
-            cv_views.push(serde_json::json!({"xyz": p, "uv": uv}));
+            if let Some((v, cv_v)) = common_view(o, c, fi, 8, &xyz, format!("{k}/{}", face.name)) {
+                views.push(v);
+                cv_views.push(cv_v);
+            }
         }
     }
     let image_size = [1920, 1080];
