@@ -18,6 +18,20 @@
 //! numbers mean the same thing in `cv::projectPoints`. With integer pixel coordinates at pixel centres
 //! (see the crate docs) `cx, cy` are directly comparable with OpenCV's.
 //!
+//! **Fisheye** ([`DistortionModel::Kb4`]): Kannala–Brandt in OpenCV's `cv::fisheye` convention, a
+//! polynomial in the angle θ between the ray and the optical axis rather than in `r`, so that it holds
+//! to fields of view of 180° and beyond, where `X/Z` does not exist:
+//!
+//! ```text
+//! θ = atan2(√(X² + Y²), Z)
+//! θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸)
+//! (x'', y'') = θ_d · (X, Y) / √(X² + Y²)
+//! ```
+//!
+//! then `K` as above. Projection is evaluated on the 3D point (valid while `θ_d` increases with θ,
+//! [`CameraError::BeyondFieldOfView`] past that); unprojection solves `θ_d(θ) = |(x'', y'')|` by
+//! Newton's method bounded to `[0, π)`. Its coefficients occupy the `k1, k2, k3, k4` slots below.
+//!
 //! The full intrinsic parameter vector used by the solvers is
 //! `[fx, fy, cx, cy, skew, k1, k2, p1, p2, k3, k4, k5, k6]` ([`PARAM_NAMES`]); a [`DistortionModel`]
 //! says which of the distortion entries are in use (the rest are held at zero).
@@ -70,8 +84,14 @@ pub enum CameraError {
     /// An intrinsic value is unusable.
     #[error("invalid intrinsics: {reason}")]
     InvalidIntrinsics { reason: String },
+    /// The point lies beyond the lens model's field of view: past the angle where a fisheye's
+    /// θ_d(θ) stops increasing (the image folds back), or straight behind the camera.
+    #[error(
+        "point at {theta_deg:.2}° off the optical axis is beyond the lens model's field of view"
+    )]
+    BeyondFieldOfView { theta_deg: f64 },
     /// A distortion model name was not recognised.
-    #[error("unknown distortion model '{0}' (expected pinhole, brown5 or brown8)")]
+    #[error("unknown distortion model '{0}' (expected pinhole, brown5, brown8 or kb4)")]
     UnknownModel(String),
 }
 
@@ -86,6 +106,9 @@ pub enum DistortionModel {
     Brown5,
     /// Brown–Conrady rational model with OpenCV's 8 coefficients `k1, k2, p1, p2, k3, k4, k5, k6`.
     Brown8,
+    /// Kannala–Brandt fisheye with OpenCV's `cv::fisheye` convention and order `k1, k2, k3, k4`:
+    /// `θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸)` (ROS `equidistant`, Kalibr `pinhole-equi`).
+    Kb4,
 }
 
 impl DistortionModel {
@@ -95,6 +118,28 @@ impl DistortionModel {
             DistortionModel::Pinhole => 0,
             DistortionModel::Brown5 => 5,
             DistortionModel::Brown8 => 8,
+            DistortionModel::Kb4 => 4,
+        }
+    }
+
+    /// Where the model's coefficients live in the full intrinsic vector, in the model's own order.
+    pub fn coefficient_slots(self) -> &'static [usize] {
+        const BROWN: [usize; 8] = [
+            idx::K1,
+            idx::K2,
+            idx::P1,
+            idx::P2,
+            idx::K3,
+            idx::K4,
+            idx::K5,
+            idx::K6,
+        ];
+        const KB4: [usize; 4] = [idx::K1, idx::K2, idx::K3, idx::K4];
+        match self {
+            DistortionModel::Pinhole => &[],
+            DistortionModel::Brown5 => &BROWN[..5],
+            DistortionModel::Brown8 => &BROWN,
+            DistortionModel::Kb4 => &KB4,
         }
     }
 
@@ -104,6 +149,7 @@ impl DistortionModel {
             DistortionModel::Pinhole => "pinhole",
             DistortionModel::Brown5 => "brown5",
             DistortionModel::Brown8 => "brown8",
+            DistortionModel::Kb4 => "kb4",
         }
     }
 }
@@ -115,6 +161,7 @@ impl std::str::FromStr for DistortionModel {
             "pinhole" | "none" => Ok(DistortionModel::Pinhole),
             "brown5" => Ok(DistortionModel::Brown5),
             "brown8" | "rational" => Ok(DistortionModel::Brown8),
+            "kb4" | "fisheye" | "equidistant" => Ok(DistortionModel::Kb4),
             other => Err(CameraError::UnknownModel(other.to_string())),
         }
     }
@@ -215,22 +262,11 @@ impl Camera {
     /// Set the distortion model and its OpenCV-ordered coefficients (missing ones are zero).
     pub fn with_distortion(mut self, model: DistortionModel, coefficients: &[f64]) -> Self {
         self.model = model;
-        let slots = [
-            idx::K1,
-            idx::K2,
-            idx::P1,
-            idx::P2,
-            idx::K3,
-            idx::K4,
-            idx::K5,
-            idx::K6,
-        ];
-        for (i, &slot) in slots.iter().enumerate() {
-            self.params[slot] = if i < model.n_coefficients() {
-                coefficients.get(i).copied().unwrap_or(0.0)
-            } else {
-                0.0
-            };
+        for slot in idx::K1..N_INTRINSIC {
+            self.params[slot] = 0.0;
+        }
+        for (i, &slot) in model.coefficient_slots().iter().enumerate() {
+            self.params[slot] = coefficients.get(i).copied().unwrap_or(0.0);
         }
         self
     }
@@ -268,17 +304,11 @@ impl Camera {
 
     /// Distortion coefficients in OpenCV order, as many as the model uses.
     pub fn distortion_coefficients(&self) -> Vec<f64> {
-        let all = [
-            self.params[idx::K1],
-            self.params[idx::K2],
-            self.params[idx::P1],
-            self.params[idx::P2],
-            self.params[idx::K3],
-            self.params[idx::K4],
-            self.params[idx::K5],
-            self.params[idx::K6],
-        ];
-        all[..self.model.n_coefficients()].to_vec()
+        self.model
+            .coefficient_slots()
+            .iter()
+            .map(|&slot| self.params[slot])
+            .collect()
     }
 
     /// Check that the intrinsics are finite and the focal lengths positive.
@@ -302,6 +332,9 @@ impl Camera {
 
     /// Distort normalised coordinates: `(x, y) → (x'', y'')`.
     pub fn distort(&self, x: f64, y: f64) -> Vector2<f64> {
+        if self.model == DistortionModel::Kb4 {
+            return self.kb4_distort(x, y).0;
+        }
         let p = &self.params;
         let r2 = x * x + y * y;
         let r4 = r2 * r2;
@@ -319,6 +352,10 @@ impl Camera {
     /// [`Camera::distort_with_jacobians`] without the coefficients' Jacobian (undistortion's Newton
     /// steps need only this, and the lens refit takes several per window pixel).
     pub fn distort_with_point_jacobian(&self, x: f64, y: f64) -> (Vector2<f64>, Matrix2<f64>) {
+        if self.model == DistortionModel::Kb4 {
+            let (d, j, _) = self.kb4_distort(x, y);
+            return (d, j);
+        }
         let t = self.distortion_terms(x, y);
         (t.distorted, t.j_xy)
     }
@@ -363,6 +400,10 @@ impl Camera {
         x: f64,
         y: f64,
     ) -> (Vector2<f64>, Matrix2<f64>, SMatrix<f64, 2, 8>) {
+        if self.model == DistortionModel::Kb4 {
+            let (d, j_xy, j_k4) = self.kb4_distort(x, y);
+            return (d, j_xy, kb4_columns(&j_k4));
+        }
         let DistortionTerms {
             distorted,
             j_xy,
@@ -407,6 +448,9 @@ impl Camera {
 
     /// Project a point given in the camera frame to a pixel.
     pub fn project_cam(&self, p: &Vector3<f64>) -> Result<Vector2<f64>, CameraError> {
+        if self.model == DistortionModel::Kb4 {
+            return Ok(self.to_pixel(&self.kb4_project(p)?.0));
+        }
         if p.z <= 0.0 || !p.z.is_finite() {
             return Err(CameraError::BehindCamera { depth: p.z });
         }
@@ -429,13 +473,21 @@ impl Camera {
         &self,
         p: &Vector3<f64>,
     ) -> Result<(Vector2<f64>, IntrinsicJacobian, PointJacobian), CameraError> {
-        if p.z <= 0.0 || !p.z.is_finite() {
-            return Err(CameraError::BehindCamera { depth: p.z });
-        }
-        let iz = 1.0 / p.z;
-        let x = p.x * iz;
-        let y = p.y * iz;
-        let (d, j_xy, j_k) = self.distort_with_jacobians(x, y);
+        let (d, j_d_point, j_k) = if self.model == DistortionModel::Kb4 {
+            let (d, j_point, j_k4) = self.kb4_project(p)?;
+            (d, j_point, kb4_columns(&j_k4))
+        } else {
+            if p.z <= 0.0 || !p.z.is_finite() {
+                return Err(CameraError::BehindCamera { depth: p.z });
+            }
+            let iz = 1.0 / p.z;
+            let x = p.x * iz;
+            let y = p.y * iz;
+            let (d, j_xy, j_k) = self.distort_with_jacobians(x, y);
+            // ∂(x, y)/∂X_cam
+            let j_norm = SMatrix::<f64, 2, 3>::new(iz, 0.0, -x * iz, 0.0, iz, -y * iz);
+            (d, j_xy * j_norm, j_k)
+        };
         let (fx, fy, s) = (self.fx(), self.fy(), self.skew());
         let uv = self.to_pixel(&d);
         // ∂uv/∂(x'', y'')
@@ -451,9 +503,7 @@ impl Camera {
             j_int[(0, idx::K1 + c)] = j_dist[(0, c)];
             j_int[(1, idx::K1 + c)] = j_dist[(1, c)];
         }
-        // ∂(x, y)/∂X_cam
-        let j_norm = SMatrix::<f64, 2, 3>::new(iz, 0.0, -x * iz, 0.0, iz, -y * iz);
-        let j_point = j_pix * j_xy * j_norm;
+        let j_point = j_pix * j_d_point;
         Ok((uv, j_int, j_point))
     }
 
@@ -490,6 +540,24 @@ impl Camera {
         }
         if self.model == DistortionModel::Pinhole {
             return Ok((target, Matrix2::identity()));
+        }
+        if self.model == DistortionModel::Kb4 {
+            // Radial: one bounded Newton solve in θ, exact to the tolerance, whatever the start.
+            let (theta, iterations) = self
+                .kb4_theta(target.norm())
+                .map_err(|(it, res)| not_converged(it, res))?;
+            if theta >= 0.5 * std::f64::consts::PI {
+                // On or behind the centre plane: a ray, but no point of the normalised plane.
+                return Err(not_converged(iterations, f64::NAN));
+            }
+            let rd = target.norm();
+            let p = if rd > 0.0 {
+                target * (theta.tan() / rd)
+            } else {
+                target
+            };
+            let (_, j) = self.distort_with_point_jacobian(p.x, p.y);
+            return Ok((p, j));
         }
         let mut p = if start.x.is_finite() && start.y.is_finite() {
             start
@@ -532,9 +600,170 @@ impl Camera {
     pub fn unproject(&self, u: f64, v: f64) -> Result<Vector3<f64>, CameraError> {
         let yd = (v - self.cy()) / self.fy();
         let xd = (u - self.cx() - self.skew() * yd) / self.fx();
+        if self.model == DistortionModel::Kb4 {
+            let rd = xd.hypot(yd);
+            let (theta, _) = self.kb4_theta(rd).map_err(|(iterations, residual)| {
+                CameraError::UndistortNotConverged {
+                    u,
+                    v,
+                    iterations,
+                    residual,
+                }
+            })?;
+            let (sin, cos) = theta.sin_cos();
+            return Ok(if rd > 0.0 {
+                Vector3::new(sin * xd / rd, sin * yd / rd, cos)
+            } else {
+                Vector3::z()
+            });
+        }
         let p = self.undistort(xd, yd)?;
         Ok(Vector3::new(p.x, p.y, 1.0).normalize())
     }
+}
+
+/// Kannala–Brandt (`cv::fisheye`) terms. The model is a function of the angle θ between a ray and
+/// the optical axis, so it is evaluated on the 3D point, not on `X/Z`: a fisheye sees points at and
+/// beyond 90° (`Z ≤ 0`), which have no place on the normalised plane.
+impl Camera {
+    /// `θ_d(θ)` and `dθ_d/dθ`.
+    fn kb4_theta_d(&self, theta: f64) -> (f64, f64) {
+        let p = &self.params;
+        let (k1, k2, k3, k4) = (p[idx::K1], p[idx::K2], p[idx::K3], p[idx::K4]);
+        let t2 = theta * theta;
+        let poly = 1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)));
+        let dpoly = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)));
+        (theta * poly, dpoly)
+    }
+
+    /// `∂θ_d/∂(k1, k2, k3, k4)`: `θ³, θ⁵, θ⁷, θ⁹`.
+    fn kb4_theta_d_coefficients(theta: f64) -> [f64; 4] {
+        let t2 = theta * theta;
+        let t3 = theta * t2;
+        [t3, t3 * t2, t3 * t2 * t2, t3 * t2 * t2 * t2]
+    }
+
+    /// Distort on the normalised plane (`Z > 0`): `(x'', y'') = θ_d/r · (x, y)`, `θ = atan r`, with
+    /// `∂/∂(x, y)` and `∂/∂(k1..k4)`.
+    fn kb4_distort(&self, x: f64, y: f64) -> (Vector2<f64>, Matrix2<f64>, SMatrix<f64, 2, 4>) {
+        let r2 = x * x + y * y;
+        let r = r2.sqrt();
+        let theta = r.atan();
+        let (td, dtd) = self.kb4_theta_d(theta);
+        let c = Self::kb4_theta_d_coefficients(theta);
+        // s = θ_d/r and (ds/dr)/r; below 1e-6 their series s = 1 + (k1 − ⅓) r², (ds/dr)/r = 2(k1 − ⅓).
+        let (s, ds_over_r, theta_over_r) = if r < 1e-6 {
+            let a = self.params[idx::K1] - 1.0 / 3.0;
+            (1.0 + a * r2, 2.0 * a, 1.0 - r2 / 3.0)
+        } else {
+            let ds = (dtd * r / (1.0 + r2) - td) / r2;
+            (td / r, ds / r, theta / r)
+        };
+        let d = Vector2::new(s * x, s * y);
+        let j_xy = Matrix2::new(
+            s + ds_over_r * x * x,
+            ds_over_r * x * y,
+            ds_over_r * x * y,
+            s + ds_over_r * y * y,
+        );
+        let mut j_k = SMatrix::<f64, 2, 4>::zeros();
+        for (i, ci) in c.iter().enumerate() {
+            // x · θ^(2i+3) / r, written with θ/r so that it stays exact as r → 0.
+            let per_r = ci / theta.max(f64::MIN_POSITIVE) * theta_over_r;
+            j_k[(0, i)] = x * per_r;
+            j_k[(1, i)] = y * per_r;
+        }
+        (d, j_xy, j_k)
+    }
+
+    /// Project a camera-frame point to distorted normalised coordinates with `∂/∂X` and
+    /// `∂/∂(k1..k4)`: valid at any angle up to where `θ_d(θ)` stops increasing.
+    fn kb4_project(
+        &self,
+        p: &Vector3<f64>,
+    ) -> Result<(Vector2<f64>, PointJacobian, SMatrix<f64, 2, 4>), CameraError> {
+        let (a, b, c) = (p.x, p.y, p.z);
+        let rho2 = a * a + b * b;
+        let rho = rho2.sqrt();
+        let n2 = rho2 + c * c;
+        if !n2.is_finite() || n2 == 0.0 {
+            return Err(CameraError::BehindCamera { depth: c });
+        }
+        let theta = rho.atan2(c);
+        let (td, dtd) = self.kb4_theta_d(theta);
+        if dtd <= 0.0 || theta >= std::f64::consts::PI {
+            return Err(CameraError::BeyondFieldOfView {
+                theta_deg: theta.to_degrees(),
+            });
+        }
+        if rho <= 1e-9 * c.abs() {
+            // On the axis (in front): the normalised-plane form is exact and has no 0/0.
+            let (d, j_xy, j_k) = self.kb4_distort(a / c, b / c);
+            let iz = 1.0 / c;
+            let j_norm = SMatrix::<f64, 2, 3>::new(iz, 0.0, -a * iz * iz, 0.0, iz, -b * iz * iz);
+            return Ok((d, j_xy * j_norm, j_k));
+        }
+        let (ua, ub) = (a / rho, b / rho);
+        let d = Vector2::new(td * ua, td * ub);
+        // ∂θ/∂(a, b, c) = (c a / (ρ n²), c b / (ρ n²), −ρ / n²); ∂(a/ρ)/∂a = b²/ρ³ etc.
+        let dth = Vector3::new(c * ua / n2, c * ub / n2, -rho / n2);
+        let rho3 = rho2 * rho;
+        let du = Vector3::new(b * b / rho3, -a * b / rho3, 0.0);
+        let dv = Vector3::new(-a * b / rho3, a * a / rho3, 0.0);
+        let row_x = dth * (dtd * ua) + du * td;
+        let row_y = dth * (dtd * ub) + dv * td;
+        let j_point = PointJacobian::new(row_x.x, row_x.y, row_x.z, row_y.x, row_y.y, row_y.z);
+        let coeffs = Self::kb4_theta_d_coefficients(theta);
+        let mut j_k = SMatrix::<f64, 2, 4>::zeros();
+        for (i, ci) in coeffs.iter().enumerate() {
+            j_k[(0, i)] = ci * ua;
+            j_k[(1, i)] = ci * ub;
+        }
+        Ok((d, j_point, j_k))
+    }
+
+    /// Invert `θ_d(θ) = rd` by Newton's method bounded to `[0, π)`: the angle and the iterations
+    /// taken, or (iterations, residual) when it does not converge or lands where `θ_d` folds.
+    fn kb4_theta(&self, rd: f64) -> Result<(f64, usize), (usize, f64)> {
+        if !rd.is_finite() {
+            return Err((0, f64::NAN));
+        }
+        if rd == 0.0 {
+            return Ok((0.0, 0));
+        }
+        let pi = std::f64::consts::PI;
+        let mut theta = rd.min(0.5 * pi);
+        let mut residual = f64::INFINITY;
+        for it in 0..UNDISTORT_MAX_ITERATIONS {
+            let (td, dtd) = self.kb4_theta_d(theta);
+            residual = td - rd;
+            if residual.abs() <= UNDISTORT_TOLERANCE * (1.0 + rd) {
+                return if dtd > 0.0 {
+                    Ok((theta, it))
+                } else {
+                    Err((it, residual))
+                };
+            }
+            if dtd <= 0.0 {
+                return Err((it, residual));
+            }
+            // A step at most half-way to either end of [0, π): the iteration cannot leave it.
+            let step = residual / dtd;
+            let limit = 0.5 * if step > 0.0 { theta } else { pi - theta };
+            theta -= step.clamp(-limit, limit);
+        }
+        Err((UNDISTORT_MAX_ITERATIONS, residual))
+    }
+}
+
+/// Place `∂/∂(k1..k4)` of the KB4 model into the 8 Brown columns `(k1, k2, p1, p2, k3, k4, k5, k6)`
+/// by the coefficients' slots (k1, k2, k3, k4 → columns 0, 1, 4, 5).
+fn kb4_columns(j: &SMatrix<f64, 2, 4>) -> SMatrix<f64, 2, 8> {
+    let mut out = SMatrix::<f64, 2, 8>::zeros();
+    for (i, col) in [0usize, 1, 4, 5].into_iter().enumerate() {
+        out.set_column(col, &j.column(i));
+    }
+    out
 }
 
 /// What [`Camera::distort_with_point_jacobian`] and [`Camera::distort_with_jacobians`] share: the
@@ -660,5 +889,154 @@ mod tests {
         let uv = cam.project_cam(&Vector3::new(0.2, -0.1, 1.0)).unwrap();
         assert!((uv.x - (320.0 + 800.0 * 0.19675125)).abs() < 1e-9);
         assert!((uv.y - (240.0 - 810.0 * 0.098375625)).abs() < 1e-9);
+    }
+
+    /// A 1280×960 fisheye whose image circle reaches past 100° off the axis at the corners.
+    fn fisheye() -> Camera {
+        Camera::pinhole([1280, 960], 352.0, 351.0, 641.7, 478.2)
+            .with_distortion(DistortionModel::Kb4, &[0.021, -0.006, 0.0011, -0.00012])
+    }
+
+    /// A camera-frame point at angle `theta` off the axis, azimuth `phi`, distance `d`.
+    fn at_angle(theta: f64, phi: f64, d: f64) -> Vector3<f64> {
+        Vector3::new(
+            d * theta.sin() * phi.cos(),
+            d * theta.sin() * phi.sin(),
+            d * theta.cos(),
+        )
+    }
+
+    #[test]
+    fn kb4_coefficients_round_trip_in_opencv_order() {
+        let c = fisheye();
+        assert_eq!(
+            c.distortion_coefficients(),
+            vec![0.021, -0.006, 0.0011, -0.00012]
+        );
+        assert_eq!(c.params[idx::K3], 0.0011);
+        assert_eq!(c.params[idx::K4], -0.00012);
+        assert_eq!(c.params[idx::P1], 0.0);
+        assert_eq!(
+            "fisheye".parse::<DistortionModel>(),
+            Ok(DistortionModel::Kb4)
+        );
+    }
+
+    #[test]
+    fn kb4_matches_opencv_fisheye_formula() {
+        // cv::fisheye::projectPoints, evaluated by hand: X = (0.3, -0.4, 0.5), a = 0.3, b = -0.4,
+        // r = 0.5/0.5 = 1 → θ = atan 1 = π/4, θ_d = θ(1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸),
+        // x' = θ_d/r · a/z, u = fx x' + cx.
+        let c = Camera::pinhole([640, 480], 300.0, 310.0, 320.0, 240.0)
+            .with_distortion(DistortionModel::Kb4, &[0.1, -0.02, 0.003, -0.0004]);
+        let th = std::f64::consts::FRAC_PI_4;
+        let t2 = th * th;
+        let td = th * (1.0 + 0.1 * t2 - 0.02 * t2 * t2 + 0.003 * t2.powi(3) - 0.0004 * t2.powi(4));
+        let uv = c.project_cam(&Vector3::new(0.3, -0.4, 0.5)).unwrap();
+        assert!((uv.x - (320.0 + 300.0 * td * 0.6)).abs() < 1e-12);
+        assert!((uv.y - (240.0 - 310.0 * td * 0.8)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn kb4_jacobians_match_central_differences_to_beyond_90_degrees() {
+        let mut cam = fisheye();
+        cam.params[idx::SKEW] = 0.4;
+        for (theta_deg, phi) in [
+            (0.5, 0.3),
+            (20.0, 1.1),
+            (60.0, -2.0),
+            (89.0, 2.5),
+            (95.0, 0.7),
+            (110.0, -0.4),
+        ] {
+            let p = at_angle(f64::to_radians(theta_deg), phi, 1.7);
+            let (_, j_int, j_pt) = cam.project_cam_with_jacobians(&p).unwrap();
+            for k in cam.model.coefficient_slots().iter().copied().chain(0..5) {
+                let h = 1e-6 * (1.0 + cam.params[k].abs());
+                let (mut cp, mut cm) = (cam.clone(), cam.clone());
+                cp.params[k] += h;
+                cm.params[k] -= h;
+                let num = (cp.project_cam(&p).unwrap() - cm.project_cam(&p).unwrap()) / (2.0 * h);
+                for r in 0..2 {
+                    assert!(
+                        (num[r] - j_int[(r, k)]).abs() < 1e-5 * (1.0 + num[r].abs()),
+                        "θ {theta_deg}° {}: analytic {} numeric {}",
+                        PARAM_NAMES[k],
+                        j_int[(r, k)],
+                        num[r]
+                    );
+                }
+            }
+            for k in 0..3 {
+                let mut dp = Vector3::zeros();
+                dp[k] = 1e-6;
+                let num = (cam.project_cam(&(p + dp)).unwrap()
+                    - cam.project_cam(&(p - dp)).unwrap())
+                    / 2e-6;
+                for r in 0..2 {
+                    assert!(
+                        (num[r] - j_pt[(r, k)]).abs() < 1e-4 * (1.0 + num[r].abs()),
+                        "θ {theta_deg}° X{k}: analytic {} numeric {}",
+                        j_pt[(r, k)],
+                        num[r]
+                    );
+                }
+            }
+            // The normalised-plane form (Z > 0) agrees with the 3D form, Jacobians included.
+            if p.z > 0.0 {
+                let (x, y) = (p.x / p.z, p.y / p.z);
+                let (d, j_xy, j_k) = cam.distort_with_jacobians(x, y);
+                let (d3, _, j_k3) = cam.kb4_project(&p).unwrap();
+                assert!((d - d3).norm() < 1e-13);
+                for (col, i) in [(0, 0), (1, 1), (4, 2), (5, 3)] {
+                    assert!((j_k.column(col) - j_k3.column(i)).norm() < 1e-12);
+                }
+                let h = 1e-7;
+                let num_x = (cam.distort(x + h, y) - cam.distort(x - h, y)) / (2.0 * h);
+                assert!((num_x - j_xy.column(0)).norm() < 1e-6 * (1.0 + num_x.norm()));
+            }
+        }
+    }
+
+    #[test]
+    fn kb4_behind_the_fold_is_beyond_the_field_of_view() {
+        // θ_d = θ(1 − 0.2 θ²) stops increasing at θ = 1/√0.6 ≈ 74°.
+        let c = Camera::pinhole([640, 480], 300.0, 300.0, 320.0, 240.0)
+            .with_distortion(DistortionModel::Kb4, &[-0.2]);
+        assert!(c.project_cam(&at_angle(1.0, 0.2, 1.0)).is_ok());
+        assert!(matches!(
+            c.project_cam(&at_angle(1.4, 0.2, 1.0)),
+            Err(CameraError::BeyondFieldOfView { .. })
+        ));
+        // θ_d peaks at 0.861: a larger distorted radius has no ray.
+        assert!(matches!(
+            c.unproject(320.0 + 300.0 * 0.9, 240.0),
+            Err(CameraError::UndistortNotConverged { .. })
+        ));
+        assert!(matches!(
+            fisheye().project_cam(&Vector3::new(0.0, 0.0, -1.0)),
+            Err(CameraError::BeyondFieldOfView { .. })
+        ));
+    }
+
+    proptest::proptest! {
+        /// Project then unproject returns the ray to 1e-9 over the whole field of view (θ up to
+        /// 110°, every azimuth), and unproject then project returns the pixel to 1e-9 px.
+        #[test]
+        fn kb4_round_trip_over_the_field_of_view(theta in 0.0f64..1.92, phi in -3.15f64..3.15, d in 0.05f64..20.0) {
+            let cam = fisheye();
+            let p = at_angle(theta, phi, d);
+            let uv = cam.project_cam(&p).unwrap();
+            let ray = cam.unproject(uv.x, uv.y).unwrap();
+            proptest::prop_assert!((ray - p.normalize()).norm() < 1e-9, "θ {theta}: {ray} vs {}", p.normalize());
+            let back = cam.project_cam(&ray).unwrap();
+            proptest::prop_assert!((back - uv).norm() < 1e-9);
+            if theta < 1.5 {
+                let yd = (uv.y - cam.cy()) / cam.fy();
+                let xd = (uv.x - cam.cx() - cam.skew() * yd) / cam.fx();
+                let n = cam.undistort(xd, yd).unwrap();
+                proptest::prop_assert!((n - Vector2::new(p.x / p.z, p.y / p.z)).norm() < 1e-9 * (1.0 + n.norm()));
+            }
+        }
     }
 }

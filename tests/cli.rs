@@ -138,7 +138,7 @@ fn non_convergence_exits_5_and_says_so() {
 fn usage_errors_exit_2() {
     let out = cubecal(&["solve"]);
     assert_eq!(out.status.code(), Some(2));
-    let out = cubecal(&["solve", "x.json", "--model", "fisheye"]);
+    let out = cubecal(&["solve", "x.json", "--model", "tsai"]);
     assert_eq!(out.status.code(), Some(2));
     let out = cubecal(&["--help"]);
     assert_eq!(out.status.code(), Some(0));

@@ -7,6 +7,17 @@
 //! - poses are then re-estimated with the shared `K` (from `P` or from the homography).
 //!
 //! Distortion starts at zero: the refinement estimates it.
+//!
+//! **Fisheye** ([`DistortionModel::Kb4`], [`initialise_fisheye`]): the pinhole initialisations above
+//! fail on a fisheye (its image of a straight line is a curve, and rays beyond 90° have no pinhole
+//! image). A fisheye is close to equidistant (`r = f θ`, all k = 0), so each of a ladder of focal
+//! lengths (the whole image diagonal spanning 60° to 360°, steps of 2^¼) unprojects the points
+//! through that equidistant lens about the image centre, re-images the rays within 75° of the axis
+//! through a pinhole of the same focal length, and runs the initialisation above on them; the candidate
+//! whose camera and poses reproject all points best (median error, as a fisheye) is kept. This is the
+//! guess `cv::fisheye::calibrate` starts from (f = max(w, h)/π), searched instead of assumed, so a
+//! 100° lens starts as well as a 200° one; a generic central-camera linear method (Scaramuzza's)
+//! would need the principal point first and a polynomial the refinement replaces anyway.
 
 use nalgebra::{Matrix3, Matrix3x4, Vector2, Vector3};
 use tracing::debug;
@@ -28,6 +39,9 @@ pub enum InitMethod {
     Zhang,
     /// One focal length per homography, principal point at the image centre.
     PlanarFocal,
+    /// A fisheye: the points unprojected through an equidistant lens (`r = f θ`) for each of a ladder
+    /// of focal lengths, each set initialised as a pinhole, the one that reprojects best kept.
+    Equidistant,
 }
 
 impl InitMethod {
@@ -38,6 +52,9 @@ impl InitMethod {
             InitMethod::Zhang => "Zhang's closed form on the planar views",
             InitMethod::PlanarFocal => {
                 "a focal length per planar view, principal point at the image centre"
+            }
+            InitMethod::Equidistant => {
+                "a pinhole initialisation of the points unprojected through the best of a ladder of equidistant lenses"
             }
         }
     }
@@ -110,8 +127,95 @@ fn plane_with_strays(x3: &[Vector3<f64>]) -> Option<Vec<usize>> {
     None
 }
 
+/// Rays farther than this from the axis are left out of the fisheye's pinhole initialisation.
+const FISHEYE_INIT_MAX_ANGLE_DEG: f64 = 75.0;
+
 /// Initial intrinsics (distortion zero, model as given) and per-view `cam_from_rig`.
 pub fn initialise(
+    views: &[View],
+    image_size: [u32; 2],
+    model: DistortionModel,
+) -> Result<Initial, CalibError> {
+    if model == DistortionModel::Kb4 {
+        return initialise_fisheye(views, image_size);
+    }
+    initialise_pinhole(views, image_size, model)
+}
+
+/// The fisheye's initialisation (module docs): an equidistant lens of the focal length, among a
+/// ladder, whose pinhole initialisation reprojects best.
+pub fn initialise_fisheye(views: &[View], image_size: [u32; 2]) -> Result<Initial, CalibError> {
+    let centre = image_centre(image_size);
+    let diagonal = f64::from(image_size[0]).hypot(f64::from(image_size[1]));
+    let cos_max = FISHEYE_INIT_MAX_ANGLE_DEG.to_radians().cos();
+    let mut best: Option<(f64, Initial)> = None;
+    let mut last_error = None;
+    // f such that the diagonal spans 360°·2^(−k/4): k = 0 … 8 covers 360° down to 90°, 9, 10 to 60°.
+    for k in 0..=10 {
+        let f = diagonal / (2.0 * std::f64::consts::PI) * 2f64.powf(f64::from(k) / 4.0);
+        let guess = Camera::pinhole(image_size, f, f, centre.x, centre.y)
+            .with_distortion(DistortionModel::Kb4, &[]);
+        let central: Vec<View> = views
+            .iter()
+            .map(|v| View {
+                name: v.name.clone(),
+                points: v
+                    .points
+                    .iter()
+                    .filter_map(|c| {
+                        let ray = guess.unproject(c.uv.x, c.uv.y).ok()?;
+                        (ray.z > cos_max).then(|| {
+                            let mut p = *c;
+                            p.uv = Vector2::new(
+                                centre.x + f * ray.x / ray.z,
+                                centre.y + f * ray.y / ray.z,
+                            );
+                            p
+                        })
+                    })
+                    .collect(),
+            })
+            .collect();
+        let init = match initialise_pinhole(&central, image_size, DistortionModel::Kb4) {
+            Ok(init) => init,
+            Err(e) => {
+                last_error = Some(e);
+                continue;
+            }
+        };
+        let mut errors: Vec<f64> = views
+            .iter()
+            .zip(&init.poses)
+            .flat_map(|(v, pose)| {
+                v.points.iter().map(|c| {
+                    init.camera
+                        .project(pose, &c.xyz)
+                        .map_or(f64::INFINITY, |uv| (uv - c.uv).norm())
+                })
+            })
+            .collect();
+        errors.sort_by(f64::total_cmp);
+        let score = errors
+            .get(errors.len() / 2)
+            .copied()
+            .unwrap_or(f64::INFINITY);
+        debug!(f, score, "fisheye initialisation candidate");
+        if score.is_finite() && best.as_ref().is_none_or(|(s, _)| score < *s) {
+            best = Some((score, init));
+        }
+    }
+    match best {
+        Some((_, mut init)) => {
+            init.method = InitMethod::Equidistant;
+            Ok(init)
+        }
+        None => Err(last_error.unwrap_or_else(|| CalibError::Degenerate {
+            reason: "no equidistant focal length initialises the fisheye".into(),
+        })),
+    }
+}
+
+fn initialise_pinhole(
     views: &[View],
     image_size: [u32; 2],
     model: DistortionModel,

@@ -85,7 +85,7 @@ pub struct Fix {
     pub tangential: bool,
     /// Hold `k3 = 0`.
     pub k3: bool,
-    /// Hold `k4 = 0`, `k5 = 0`, `k6 = 0` (rational model only), each on its own.
+    /// Hold `k4 = 0`, `k5 = 0`, `k6 = 0` (rational model; `k4` also the fisheye's), each on its own.
     pub k4: bool,
     pub k5: bool,
     pub k6: bool,
@@ -256,7 +256,15 @@ impl ParamMap {
         if !fix.skew {
             cols.push((vec![(idx::SKEW, 1.0)], "skew"));
         }
-        if model != DistortionModel::Pinhole {
+        if model == DistortionModel::Kb4 {
+            cols.push((vec![(idx::K1, 1.0)], "k1"));
+            cols.push((vec![(idx::K2, 1.0)], "k2"));
+            for (fixed, k, name) in [(fix.k3, idx::K3, "k3"), (fix.k4, idx::K4, "k4")] {
+                if !fixed {
+                    cols.push((vec![(k, 1.0)], name));
+                }
+            }
+        } else if model != DistortionModel::Pinhole {
             cols.push((vec![(idx::K1, 1.0)], "k1"));
             cols.push((vec![(idx::K2, 1.0)], "k2"));
             if !fix.tangential {

@@ -32,6 +32,10 @@ pub struct PoseFit {
 /// Fewest points a pose is solved from.
 pub const MIN_POINTS: usize = 4;
 
+/// Rays farther than this from the optical axis are left out of the linear initial pose (they are in
+/// the refinement).
+const MAX_INIT_ANGLE_DEG: f64 = 80.0;
+
 /// Solve `cam_from_rig` of `view` with `camera` fixed.
 pub fn solve_pose(camera: &Camera, view: &View) -> Result<PoseFit, CalibError> {
     super::validate_views(std::slice::from_ref(view))?;
@@ -43,22 +47,29 @@ pub fn solve_pose(camera: &Camera, view: &View) -> Result<PoseFit, CalibError> {
         }
         .in_view(&view.name));
     }
-    let rays: Vec<Vector2<f64>> = view
+    let rays: Vec<Vector3<f64>> = view
         .points
         .iter()
         .map(|c| {
-            camera
-                .unproject(c.uv.x, c.uv.y)
-                .map(|r| Vector2::new(r.x / r.z, r.y / r.z))
-                .map_err(|e| {
-                    CalibError::Degenerate {
-                        reason: format!("cannot undistort an image point: {e}"),
-                    }
-                    .in_view(&view.name)
-                })
+            camera.unproject(c.uv.x, c.uv.y).map_err(|e| {
+                CalibError::Degenerate {
+                    reason: format!("cannot undistort an image point: {e}"),
+                }
+                .in_view(&view.name)
+            })
         })
         .collect::<Result<_, _>>()?;
-    let xyz: Vec<Vector3<f64>> = view.points.iter().map(|c| c.xyz).collect();
+    // A fisheye sees rays at and beyond 90°, which have no place on the normalised plane the linear
+    // initialisation works in: it uses the rays within 80° of the axis when enough are.
+    let central = |r: &Vector3<f64>| r.z > MAX_INIT_ANGLE_DEG.to_radians().cos();
+    let use_all = rays.iter().filter(|r| central(r)).count() < MIN_POINTS;
+    let (xyz, rays): (Vec<Vector3<f64>>, Vec<Vector2<f64>>) = view
+        .points
+        .iter()
+        .zip(&rays)
+        .filter(|(_, r)| use_all || central(r))
+        .map(|(c, r)| (c.xyz, Vector2::new(r.x / r.z, r.y / r.z)))
+        .unzip();
     let init = initial_pose(&xyz, &rays).map_err(|e| e.in_view(&view.name))?;
     refine(camera, view, init).map_err(|e| e.in_view(&view.name))
 }

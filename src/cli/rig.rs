@@ -153,6 +153,7 @@ fn run_survey(args: SurveyArgs, out: Output) -> anyhow::Result<u8> {
         ModelArg::Pinhole => DistortionModel::Pinhole,
         ModelArg::Brown5 => DistortionModel::Brown5,
         ModelArg::Brown8 => DistortionModel::Brown8,
+        ModelArg::Kb4 => DistortionModel::Kb4,
     };
     let result = calib::solve_rig(&rig, &views, size, &opts)
         .with_context(|| format!("surveying rig '{}' from {} frame(s)", rig.name, views.len()))?;

@@ -21,6 +21,9 @@ pub enum ModelArg {
     Brown5,
     /// OpenCV rational model k1, k2, p1, p2, k3, k4, k5, k6.
     Brown8,
+    /// Kannala–Brandt fisheye, OpenCV's cv::fisheye k1, k2, k3, k4 (ROS equidistant).
+    #[value(alias = "fisheye")]
+    Kb4,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -106,6 +109,7 @@ impl SolveArgs {
             ModelArg::Pinhole => DistortionModel::Pinhole,
             ModelArg::Brown5 => DistortionModel::Brown5,
             ModelArg::Brown8 => DistortionModel::Brown8,
+            ModelArg::Kb4 => DistortionModel::Kb4,
         };
         let has = |f: FixArg| self.fix.contains(&f);
         SolveOptions {
@@ -139,8 +143,10 @@ pub fn run(args: SolveArgs, out: Output) -> anyhow::Result<u8> {
         );
     }
     let model_has = |f: FixArg| match f {
-        FixArg::K4 | FixArg::K5 | FixArg::K6 => args.model == ModelArg::Brown8,
-        FixArg::Tangential | FixArg::K3 => args.model != ModelArg::Pinhole,
+        FixArg::K4 => matches!(args.model, ModelArg::Brown8 | ModelArg::Kb4),
+        FixArg::K5 | FixArg::K6 => args.model == ModelArg::Brown8,
+        FixArg::Tangential => matches!(args.model, ModelArg::Brown5 | ModelArg::Brown8),
+        FixArg::K3 => args.model != ModelArg::Pinhole,
         _ => true,
     };
     if let Some(f) = args.fix.iter().find(|&&f| !model_has(f)) {

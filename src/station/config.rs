@@ -809,10 +809,11 @@ impl StationConfig {
             "pinhole" => DistortionModel::Pinhole,
             "brown5" => DistortionModel::Brown5,
             "brown8" => DistortionModel::Brown8,
+            "kb4" => DistortionModel::Kb4,
             other => {
                 return Err(bad(
                     "solve.model",
-                    format!("'{other}' is not pinhole, brown5 or brown8"),
+                    format!("'{other}' is not pinhole, brown5, brown8 or kb4"),
                 ));
             }
         };
