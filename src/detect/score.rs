@@ -7,6 +7,8 @@
 use std::collections::HashMap;
 
 use nalgebra::{Vector2, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 use super::FrameDetection;
 use crate::camera::{Camera, DistortionModel, Pose};
@@ -30,6 +32,10 @@ pub enum EvalSet {
     PeripheryK1m03,
     /// As [`EvalSet::PeripheryK1m03`] with k1 −0.4 and fx 1450 (fold at 1.1 × the half-diagonal).
     PeripheryK1m04,
+    /// A 180° fisheye (issue 32): 1280×960, Kannala–Brandt fx 350 (the image's width spans 210°, its
+    /// corners 131° off the axis), the realistic set's blur, noise, gamma and vignetting; the cube's
+    /// centre turned to a seeded angle of 0–70° off the axis ([`fisheye_poses`]).
+    Fisheye,
 }
 
 impl EvalSet {
@@ -43,6 +49,8 @@ impl EvalSet {
                 .with_distortion(DistortionModel::Brown5, &[-0.3]),
             EvalSet::PeripheryK1m04 => Camera::pinhole([1280, 960], 1450.0, 1450.0, 639.5, 479.5)
                 .with_distortion(DistortionModel::Brown5, &[-0.4]),
+            EvalSet::Fisheye => Camera::pinhole([1280, 960], 350.0, 350.0, 641.2, 478.6)
+                .with_distortion(DistortionModel::Kb4, &[0.021, -0.0043, 0.00052, -0.000047]),
         }
     }
 
@@ -63,6 +71,12 @@ impl EvalSet {
                 blur_sigma_px: 1.0,
                 noise_sigma: 2.0,
                 seed: 3,
+                ..base
+            },
+            EvalSet::Fisheye => RenderSettings {
+                blur_sigma_px: 1.0,
+                noise_sigma: 2.0,
+                seed: 4,
                 ..base
             },
             EvalSet::Hard => RenderSettings {
@@ -88,6 +102,7 @@ impl EvalSet {
             EvalSet::PeripheryK1m03 | EvalSet::PeripheryK1m04 => {
                 periphery_poses(rig, &self.camera(), n, self.settings().seed)
             }
+            EvalSet::Fisheye => fisheye_poses(rig, &self.camera(), n, self.settings().seed),
         }
     }
 
@@ -98,6 +113,7 @@ impl EvalSet {
             EvalSet::Hard => "hard",
             EvalSet::PeripheryK1m03 => "periphery-0.3",
             EvalSet::PeripheryK1m04 => "periphery-0.4",
+            EvalSet::Fisheye => "fisheye",
         }
     }
 
@@ -108,6 +124,7 @@ impl EvalSet {
             EvalSet::Hard,
             EvalSet::PeripheryK1m03,
             EvalSet::PeripheryK1m04,
+            EvalSet::Fisheye,
         ]
         .into_iter()
         .find(|s| s.name() == name)
@@ -152,6 +169,48 @@ pub fn periphery_poses(rig: &Rig, camera: &Camera, n: usize, seed: u64) -> Vec<P
         })
         .collect()
 }
+
+/// `n` seeded views for a fisheye: [`random_poses`] moved back to [`FISHEYE_DISTANCE`] × their
+/// distance, then the camera turned about its centre so that
+/// the rig's centre is seen at a seeded angle of 0 to [`FISHEYE_MAX_OFF_AXIS_DEG`] off the optical
+/// axis, in a seeded direction.
+pub fn fisheye_poses(rig: &Rig, camera: &Camera, n: usize, seed: u64) -> Vec<Pose> {
+    let centre = rig.centre();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_f15e);
+    random_poses(rig, camera, n, seed)
+        .into_iter()
+        .map(|p| {
+            let off = rng.random_range(0.0..FISHEYE_MAX_OFF_AXIS_DEG).to_radians();
+            let azimuth = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+            let depth = p.transform(&centre).z;
+            let back = Pose::from_axis_angle(
+                Vector3::zeros(),
+                Vector3::new(0.0, 0.0, (FISHEYE_DISTANCE - 1.0) * depth),
+            );
+            let p = back.compose(&p);
+            let from = p.transform(&centre).normalize();
+            let to = Vector3::new(
+                off.sin() * azimuth.cos(),
+                off.sin() * azimuth.sin(),
+                off.cos(),
+            );
+            let axis = from.cross(&to);
+            let angle = axis.norm().atan2(from.dot(&to));
+            let turn = match axis.try_normalize(1e-12) {
+                Some(a) => Pose::from_axis_angle(a * angle, Vector3::zeros()),
+                None => Pose::identity(),
+            };
+            turn.compose(&p)
+        })
+        .collect()
+}
+
+/// Distance of [`fisheye_poses`]' views relative to [`random_poses`]' (which fill a pinhole's frame
+/// of the same focal length: a fisheye's frame holds far more than that).
+pub const FISHEYE_DISTANCE: f64 = 1.4;
+
+/// Largest angle off the axis at which [`fisheye_poses`] puts the rig's centre.
+pub const FISHEYE_MAX_OFF_AXIS_DEG: f64 = 70.0;
 
 /// Distance of [`periphery_poses`]' views relative to [`random_poses`]'.
 pub const PERIPHERY_DISTANCE: f64 = 1.9;

@@ -1,5 +1,5 @@
-//! OpenCV's aruco module for the ChArUco tests: the python that has it, and the peer script
-//! `tests/peers/charuco_opencv.py` run with it.
+//! OpenCV's python module (with aruco) for the tests that compare with it: the python that has it,
+//! and the peer scripts of `tests/peers/` run with it.
 
 use std::ffi::OsStr;
 use std::path::Path;
@@ -34,8 +34,16 @@ pub fn python_with_aruco() -> Option<String> {
 }
 
 /// Runs the OpenCV peer script with `args`; its standard output (it must succeed).
+#[allow(dead_code)] // not every test file that includes this module runs this script
 pub fn run_peer<S: AsRef<OsStr>>(py: &str, args: &[S]) -> Vec<u8> {
-    let peer = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/charuco_opencv.py");
+    run_script(py, "charuco_opencv.py", args)
+}
+
+/// Runs `tests/peers/<script>` with `args`; its standard output (it must succeed).
+pub fn run_script<S: AsRef<OsStr>>(py: &str, script: &str, args: &[S]) -> Vec<u8> {
+    let peer = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/peers")
+        .join(script);
     let out = Command::new(py)
         .arg(&peer)
         .args(args)
