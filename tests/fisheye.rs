@@ -314,3 +314,97 @@ fn fisheye_renders_are_detected_and_calibrated() {
         "OpenCV closer: {theirs:?} vs {ours:?}"
     );
 }
+
+/// Acceptance 2 of issue 32 on the one real fisheye set we may ship
+/// (`fixtures/fisheye/dtorres_fisheye_8x6`: 24 photos at 800×503 through a ≈182° lens, a hand-held
+/// 8×6 board reaching 76° off the axis): cubecal labels at least as many views as OpenCV's detectors
+/// (its recorded baseline, `tests/peers/fisheye_opencv.py`), and its kb4 calibration agrees with
+/// cv2.fisheye.calibrate run on the same corners (cubecal's, each view a plane) within 3 of
+/// cubecal's σ in every parameter.
+#[test]
+fn real_fisheye_photos_are_labelled_and_agree_with_opencv() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("fixtures/fisheye/dtorres_fisheye_8x6");
+    let baseline: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("opencv_baseline.json")).unwrap()).unwrap();
+    let size = cubecal::rig::BoardSize { cols: 8, rows: 6 };
+    let (rig, _) = Rig::from_toml_str(&cubecal::rig::board_toml(size, 25.0), "board").unwrap();
+    let mut paths: Vec<_> = std::fs::read_dir(dir.join("images"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    paths.sort();
+    let mut finder = CornerFinder::new().unwrap();
+    let (mut views, mut planar) = (Vec::new(), Vec::new());
+    let mut image_size = [0, 0];
+    for path in &paths {
+        let img = image::open(path).unwrap().to_luma8();
+        image_size = [img.width(), img.height()];
+        let det = detect(&mut finder, &img, &rig).unwrap();
+        let Some(face) = det.faces.first() else {
+            eprintln!("{}: not labelled: {:?}", path.display(), det.rejected);
+            continue;
+        };
+        let (xyz, uv): (Vec<[f64; 3]>, Vec<[f64; 2]>) = face
+            .corners
+            .iter()
+            .map(|c| ([c.xyz.x, c.xyz.y, 0.0], [c.uv.x, c.uv.y]))
+            .unzip();
+        planar.push(serde_json::json!({"xyz": xyz, "uv": uv}));
+        views.push(det.to_view(&path.display().to_string()));
+    }
+    let cv_found = baseline["found"]["either"].as_u64().unwrap() as usize;
+    eprintln!(
+        "views labelled: cubecal {} of {}, OpenCV {cv_found}",
+        views.len(),
+        paths.len()
+    );
+    assert!(
+        views.len() >= cv_found,
+        "{} views, OpenCV {cv_found}",
+        views.len()
+    );
+    // The station's weighting (equal, with a ceiling for corners of over twice the median σ).
+    // Measured: weighted by every corner's own covariance instead, fx lands 3.4σ below OpenCV's
+    // (287.82 vs 289.26): the blurred views' corners carry their blur in their σ, and their weight
+    // moves the answer by more than its σ, a model error (hand-held board, real lens) that the
+    // covariances do not hold.
+    let opts = SolveOptions {
+        model: DistortionModel::Kb4,
+        weighting: calib::Weighting::Equal,
+        ..SolveOptions::default()
+    };
+    let cal = calib::solve(&views, image_size, &opts).unwrap();
+    let Some(py) = aruco::python_with_aruco() else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("views.json");
+    let spec = serde_json::json!({"image_size": image_size, "views": planar});
+    std::fs::write(&path, spec.to_string()).unwrap();
+    let cv: serde_json::Value =
+        serde_json::from_slice(&aruco::run_script(&py, "fisheye_calibrate.py", &[&path])).unwrap();
+    eprintln!(
+        "cubecal RMS {:.3} px per coordinate; OpenCV {} RMS {} px per corner",
+        cal.rms_px, cv["version"], cv["rms"]
+    );
+    for (i, k) in KB4_PARAMS.into_iter().enumerate() {
+        let theirs = if i < 4 {
+            cv["K"][i].as_f64()
+        } else {
+            cv["D"][i - 4].as_f64()
+        }
+        .unwrap();
+        let (ours, s) = (cal.camera.params[k], cal.std_dev[k]);
+        eprintln!(
+            "{}: cubecal {ours:.6} ± {s:.2e}, OpenCV {theirs:.6} ({:+.2}σ)",
+            PARAM_NAMES[k],
+            (ours - theirs) / s
+        );
+        assert!(
+            (ours - theirs).abs() <= 3.0 * s,
+            "{}: {ours} vs OpenCV {theirs}",
+            PARAM_NAMES[k]
+        );
+    }
+}

@@ -99,7 +99,12 @@ pub fn border_gain_of(cam: &crate::camera::Camera) -> Option<[f64; N_INTRINSIC]>
     let k_inv = cam.k_matrix().try_inverse()?;
     let mut gain = [0.0f64; N_INTRINSIC];
     for (u, v) in border {
-        let ray = k_inv * Vector3::new(u, v, 1.0);
+        // A fisheye's border lies far beyond the pinhole ray of its pixel (θ, not tan θ): its own.
+        let ray = match cam.model {
+            crate::camera::DistortionModel::Kb4 => cam.unproject(u, v).ok(),
+            _ => None,
+        }
+        .unwrap_or_else(|| k_inv * Vector3::new(u, v, 1.0));
         if let Ok((_, j, _)) = cam.project_cam_with_jacobians(&ray) {
             for (k, g) in gain.iter_mut().enumerate() {
                 *g = g.max(j.column(k).norm());

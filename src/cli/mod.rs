@@ -97,16 +97,17 @@ pub fn fmt_value(x: f64) -> String {
     }
 }
 
-/// Distortion coefficients named in OpenCV's order, each to six significant decimals, with σ where
-/// the calibration has one: `k1 -0.281234 ± 0.001234, k2 …`.
+/// Distortion coefficients of `model` named in OpenCV's order, each to six significant decimals,
+/// with σ where the calibration has one: `k1 -0.281234 ± 0.001234, k2 …`.
 pub fn fmt_distortion(
+    model: &str,
     coefficients: &[f64],
     std_dev: &std::collections::BTreeMap<String, f64>,
 ) -> String {
-    const NAMES: [&str; 8] = ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"];
+    let names = cubecal::camera::DistortionModel::from_name_or_brown(model).coefficient_names();
     coefficients
         .iter()
-        .zip(NAMES)
+        .zip(names.iter().copied())
         .map(|(v, name)| match std_dev.get(name) {
             Some(sd) => format!("{name} {v:.6} ± {sd:.6}"),
             None => format!("{name} {v:.6} (fixed)"),

@@ -306,8 +306,9 @@ pub struct SolveSection {
     pub fix: Vec<String>,
     /// Robust loss `huber:C` / `cauchy:C` (px), or `none`.
     pub loss: String,
-    /// Fix k3 at 0 (and say so) when the data leave it undetermined: within 2σ of 0 while 1σ moves the
-    /// image border by over a pixel ([`crate::calib::insignificant_at_border`]).
+    /// Fix k3 (the fisheye's k4: the highest radial term) at 0 (and say so) when the data leave it
+    /// undetermined: within 2σ of 0 while 1σ moves the image border by over a pixel
+    /// ([`crate::calib::insignificant_at_border`]).
     pub fix_undetermined_k3: bool,
     /// `equal` (every corner alike, but for the few the detector rates much worse than the median,
     /// such as a grazing face's: [`crate::calib::Weighting::Equal`]) or `covariance` (each corner by

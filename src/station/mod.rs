@@ -1282,30 +1282,42 @@ fn solve_and_judge(
             }
         };
         laps.lap("solve");
+        // The highest radial term: Brown–Conrady's k3, the fisheye's k4.
+        let (top, top_name) = if opts.model == crate::camera::DistortionModel::Kb4 {
+            (crate::camera::idx::K4, "k4")
+        } else {
+            (crate::camera::idx::K3, "k3")
+        };
         if cfg.solve.fix_undetermined_k3
-            && let Some(k3) = crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3)
+            && let Some(k3) = crate::calib::insignificant_at_border(&cal, top)
         {
             let (k3, k3_sd) = (k3.value, k3.std_dev);
-            opts.fix.k3 = true;
+            if top_name == "k4" {
+                opts.fix.k4 = true;
+            } else {
+                opts.fix.k3 = true;
+            }
             match notify::alive_during(sink, SOLVE_LIMIT, || {
                 solve_views(spec, &fit, image_size, &opts)
             }) {
                 Ok((c, r)) => {
                     let why = format!(
-                        "these views do not determine it (k3 = {k3:.3} ± {k3_sd:.3}, within {}σ of 0, and 1σ moves the image border by {:.1} px); add poses with the rig near the image corners to estimate it",
+                        "these views do not determine it ({top_name} = {k3:.3} ± {k3_sd:.3}, within {}σ of 0, and 1σ moves the image border by {:.1} px); add poses with the rig near the image corners to estimate it",
                         crate::calib::SIGNIFICANCE_SIGMAS,
-                        crate::calib::insignificant_at_border(&cal, crate::camera::idx::K3)
+                        crate::calib::insignificant_at_border(&cal, top)
                             .map_or(0.0, |u| u.effect_px)
                     );
-                    notes.push(format!("k3 fixed at 0: {why}"));
+                    notes.push(format!("{top_name} fixed at 0: {why}"));
                     fixed.push(crate::run::FixedParameter {
-                        name: "k3".into(),
+                        name: top_name.into(),
                         value: 0.0,
                         reason: why,
                     });
                     (cal, rig_solve) = (c, r);
                 }
-                Err(e) => tracing::warn!(error = %e, "re-solve with k3 fixed failed; keeping k3"),
+                Err(e) => {
+                    tracing::warn!(error = %e, "re-solve with {top_name} fixed failed; keeping it")
+                }
             }
         }
         laps.lap("k3 check");
@@ -1589,7 +1601,10 @@ fn configured_fixes(
             "held at 0 by default: modern sensors have none",
         );
     }
-    if opts.model != crate::camera::DistortionModel::Pinhole {
+    if matches!(
+        opts.model,
+        crate::camera::DistortionModel::Brown5 | crate::camera::DistortionModel::Brown8
+    ) {
         if f.tangential {
             let why = "configured (solve.fix = tangential)";
             push("p1", 0.0, why);
