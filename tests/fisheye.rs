@@ -408,3 +408,69 @@ fn real_fisheye_photos_are_labelled_and_agree_with_opencv() {
         );
     }
 }
+
+/// Renders `n` frames of `set` into `dir` as PNG photos.
+fn render_photos(set: EvalSet, rig: &Rig, n: usize, dir: &std::path::Path) {
+    let (camera, settings) = (set.camera(), set.settings());
+    for (k, pose) in set.poses(rig, n).iter().enumerate() {
+        let img = render(rig, &camera, pose, &settings, k as u64).unwrap();
+        img.save(dir.join(format!("{}_{k:02}.png", set.name())))
+            .unwrap();
+    }
+}
+
+/// Acceptance 3 of issue 32: `solve.model = "auto"` solves with Brown–Conrady and with the fisheye and
+/// keeps the one whose held-out view reprojects best, saying so with both figures: Brown–Conrady on
+/// the realistic set's renders (a k1 = −0.1 lens), the fisheye on the fisheye set's.
+#[test]
+fn model_auto_picks_the_lens_by_the_held_out_view() {
+    let rig_path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/fixtures/rigs/cube_outside.toml"
+    );
+    let (rig, _) = Rig::load(std::path::Path::new(rig_path)).unwrap();
+    for (set, want, other) in [
+        (EvalSet::Realistic, "brown5", "kb4"),
+        (EvalSet::Fisheye, "kb4", "brown5"),
+    ] {
+        let tmp = tempfile::tempdir().unwrap();
+        let photos = tmp.path().join("photos");
+        std::fs::create_dir(&photos).unwrap();
+        render_photos(set, &rig, 10, &photos);
+        let run = tmp.path().join("run");
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_cubecal"))
+            .args([
+                "calibrate",
+                "--json",
+                "--rig",
+                rig_path,
+                "--set",
+                "solve.model=auto",
+            ])
+            .arg("--images")
+            .arg(&photos)
+            .arg("--out")
+            .arg(&run)
+            .output()
+            .unwrap();
+        let result: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(run.join("result.json"))
+                .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stderr))),
+        )
+        .unwrap();
+        let model = result["calibration"]["distortion"]["model"]
+            .as_str()
+            .unwrap();
+        let note = (result["notes"].as_array().unwrap().iter())
+            .filter_map(|n| n.as_str())
+            .find(|n| n.contains("chosen by the held-out views"))
+            .unwrap_or_else(|| panic!("no model note: {}", result["notes"]))
+            .to_string();
+        eprintln!("{}: {model}: {note}", set.name());
+        assert_eq!(model, want, "{}", set.name());
+        assert!(
+            note.contains(&format!("{want} ")) && note.contains(&format!("{other} ")),
+            "{note}"
+        );
+    }
+}

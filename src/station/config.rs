@@ -798,6 +798,16 @@ impl StationConfig {
         Ok(())
     }
 
+    /// The lens models the station solves with: `solve.model`'s, or for `"auto"` Brown–Conrady 5 and
+    /// the Kannala–Brandt fisheye, of which the run keeps the one its held-out views prefer.
+    pub fn model_candidates(&self, origin: &str) -> Result<Vec<DistortionModel>, ConfigError> {
+        Ok(if self.solve.model == "auto" {
+            vec![DistortionModel::Brown5, DistortionModel::Kb4]
+        } else {
+            vec![self.solve_options(origin)?.model]
+        })
+    }
+
     /// The solver options `[solve]` describes.
     pub fn solve_options(&self, origin: &str) -> Result<SolveOptions, ConfigError> {
         let bad = |key: &str, message: String| ConfigError::Invalid {
@@ -811,10 +821,12 @@ impl StationConfig {
             "brown5" => DistortionModel::Brown5,
             "brown8" => DistortionModel::Brown8,
             "kb4" => DistortionModel::Kb4,
+            // The first of `model_candidates`; the station solves with each.
+            "auto" => DistortionModel::Brown5,
             other => {
                 return Err(bad(
                     "solve.model",
-                    format!("'{other}' is not pinhole, brown5, brown8 or kb4"),
+                    format!("'{other}' is not pinhole, brown5, brown8, kb4 or auto"),
                 ));
             }
         };

@@ -1269,11 +1269,14 @@ fn solve_and_judge(
             points: fit.iter().map(|v| v.points.len()).sum(),
         });
         let mut opts = cfg.solve_options("station config")?;
-        let mut fixed = configured_fixes(&opts, image_size);
+        let candidates = cfg.model_candidates("station config")?;
         let (mut cal, mut rig_solve) = match notify::alive_during(sink, SOLVE_LIMIT, || {
-            solve_views(spec, &fit, image_size, &opts)
+            solve_choosing_model(spec, &fit, &held, image_size, &mut opts, &candidates)
         }) {
-            Ok(c) => c,
+            Ok((c, note)) => {
+                notes.extend(note);
+                c
+            }
             Err(e) => {
                 result.solve_error = Some(e.to_string());
                 result.verdict = judge::solve_failed(&e, fit.len(), cfg);
@@ -1282,6 +1285,7 @@ fn solve_and_judge(
             }
         };
         laps.lap("solve");
+        let mut fixed = configured_fixes(&opts, image_size);
         // The highest radial term: Brown–Conrady's k3, the fisheye's k4.
         let (top, top_name) = if opts.model == crate::camera::DistortionModel::Kb4 {
             (crate::camera::idx::K4, "k4")
@@ -1454,6 +1458,133 @@ type Solved = (
 );
 
 /// Solve `views` with `opts` (see [`Solved`]).
+/// Solve with the one model of `candidates`; with several (`solve.model = "auto"`), solve with each
+/// and judge them by their held-out views, reprojected with their poses solved in each camera: a model
+/// with more freedom always lowers the fitted views' RMS, so only views it was not fitted to can tell a
+/// better lens model from overfitting. The first candidate (Brown–Conrady, which every tool reads) is
+/// kept unless a later one lowers the held-out views' sum of squared residuals by more than
+/// [`MODEL_SWITCH_CHI2`] × the noise variance (the best-fitting candidate's fitted residual
+/// variance): two models that both fit the lens
+/// (a mild lens is as well a fisheye with small k) differ by noise there, and the choice between
+/// them must not be a coin toss. `opts.model` is set to the model kept; the note gives each
+/// candidate's figures and the reason.
+/// How much a later lens-model candidate must lower the held-out views' sum of squared residuals, in
+/// units of the noise variance, to be chosen over it: a χ² difference
+/// beyond 3σ of one degree of freedom's.
+pub const MODEL_SWITCH_CHI2: f64 = 9.0;
+
+fn solve_choosing_model(
+    spec: &RunSpec<'_>,
+    fit: &[View],
+    held: &[View],
+    image_size: [u32; 2],
+    opts: &mut crate::calib::SolveOptions,
+    candidates: &[crate::camera::DistortionModel],
+) -> Result<(Solved, Option<String>), crate::calib::CalibError> {
+    if candidates.len() < 2 {
+        return Ok((solve_views(spec, fit, image_size, opts)?, None));
+    }
+    if held.is_empty() {
+        opts.model = candidates[0];
+        let note = format!(
+            "solve.model = auto: no held-out view to choose the lens model by (plan.held_out = 0 or too few views); {} used",
+            opts.model.name()
+        );
+        return Ok((solve_views(spec, fit, image_size, opts)?, Some(note)));
+    }
+    let mut scored = Vec::new();
+    let mut last_error = None;
+    for &model in candidates {
+        let o = crate::calib::SolveOptions {
+            model,
+            ..opts.clone()
+        };
+        match solve_views(spec, fit, image_size, &o) {
+            Ok(solved) => {
+                // Σ r² over the held-out coordinates, and their number.
+                let (mut sum, mut n) = (0.0, 0usize);
+                for v in held {
+                    match crate::calib::pose::solve_pose(&solved.0.camera, v) {
+                        Ok(p) => {
+                            sum += p.residuals.iter().map(|r| r.norm_squared()).sum::<f64>();
+                            n += 2 * p.residuals.len();
+                        }
+                        Err(_) => sum = f64::INFINITY,
+                    }
+                }
+                if n == 0 {
+                    sum = f64::INFINITY;
+                }
+                tracing::info!(
+                    model = model.name(),
+                    held_ss = sum,
+                    fit_rms = solved.0.rms_px,
+                    "lens model candidate"
+                );
+                scored.push((model, sum, n, solved));
+            }
+            Err(e) => {
+                tracing::info!(model = model.name(), error = %e, "lens model candidate failed");
+                last_error = Some((model, e));
+            }
+        }
+    }
+    if scored.is_empty() {
+        return Err(last_error.map_or(
+            crate::calib::CalibError::Degenerate {
+                reason: "no lens model candidate".into(),
+            },
+            |(_, e)| e,
+        ));
+    }
+    // The first that solved, unless a later one beats it by the margin; then the best of those.
+    // The noise variance: the best-fitting candidate's fitted residual variance (a model that
+    // does not fit the lens inflates its own).
+    let variance = (scored.iter())
+        .map(|s| s.3.0.rms_px.powi(2))
+        .fold(f64::INFINITY, f64::min)
+        .max(f64::MIN_POSITIVE);
+    let gain = |i: usize| (scored[0].1 - scored[i].1) / variance;
+    let best = (1..scored.len())
+        .filter(|&i| gain(i) > MODEL_SWITCH_CHI2)
+        .max_by(|&a, &b| gain(a).total_cmp(&gain(b)))
+        .unwrap_or(0);
+    let mut parts: Vec<String> = (scored.iter())
+        .map(|(m, ss, n, s)| {
+            format!(
+                "{} {:.4} px held out (fitted views {:.4} px)",
+                m.name(),
+                (ss / (*n).max(1) as f64).sqrt(),
+                s.0.rms_px
+            )
+        })
+        .collect();
+    if let Some((m, e)) = &last_error {
+        parts.push(format!("{} did not solve ({e})", m.name()));
+    }
+    let why = if best == 0 {
+        match (1..scored.len()).map(gain).max_by(f64::total_cmp) {
+            Some(g) => format!(
+                "no other model lowers the held-out views' squared residuals by over {MODEL_SWITCH_CHI2} σ² (best {g:.1} σ²), so the first, read by every tool, is kept"
+            ),
+            None => "the only one that solved".to_string(),
+        }
+    } else {
+        format!(
+            "it lowers the held-out views' squared residuals by {:.1} σ² (over {MODEL_SWITCH_CHI2})",
+            gain(best)
+        )
+    };
+    let (model, _, _, solved) = scored.swap_remove(best);
+    opts.model = model;
+    let note = format!(
+        "lens model {} chosen by the held-out views (not the fitted views' RMS): {why}; {}",
+        model.name(),
+        parts.join("; ")
+    );
+    Ok((solved, Some(note)))
+}
+
 fn solve_views(
     spec: &RunSpec<'_>,
     views: &[View],
