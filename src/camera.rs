@@ -143,6 +143,14 @@ impl DistortionModel {
         }
     }
 
+    /// The names of the model's coefficients in its own order, as in [`PARAM_NAMES`]: OpenCV's
+    /// `k1, k2, p1, p2, k3, …` for Brown–Conrady, `k1, k2, k3, k4` for kb4.
+    pub fn coefficient_names(self) -> impl Iterator<Item = &'static str> {
+        self.coefficient_slots()
+            .iter()
+            .map(|&slot| PARAM_NAMES[slot])
+    }
+
     /// The model's name as used on the command line and in files.
     pub fn name(self) -> &'static str {
         match self {

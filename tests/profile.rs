@@ -36,10 +36,10 @@ const DIR_VAR: &str = "CUBECAL_PROFILE_DIR";
 
 fn report(camera: &Camera, sigma: f64) -> CalibrationReport {
     let k = camera.k_matrix();
+    // σ and covariance under the names the solver gives them (kb4's coefficients are k1, k2, k3, k4)
     let names: Vec<&str> = ["fx", "fy", "cx", "cy"]
         .into_iter()
-        .chain(["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"])
-        .take(4 + camera.model.n_coefficients())
+        .chain(camera.model.coefficient_names())
         .collect();
     let n = names.len();
     CalibrationReport {
@@ -249,6 +249,79 @@ fn commits_keep_history_and_measure_the_change_in_sigma() {
         out.change.map(|c| c.notes.len()),
         Some(1),
         "the note says why"
+    );
+}
+
+/// The fisheye of issue 32: fx ≈ 350 at 1280×960, Kannala–Brandt in OpenCV's `cv::fisheye` order.
+fn kb4_camera() -> Camera {
+    Camera::pinhole([1280, 960], 350.4, 349.7, 641.3, 478.6)
+        .with_distortion(DistortionModel::Kb4, &[0.021, -0.0043, 0.00052, -0.000047])
+}
+
+#[test]
+fn a_kb4_profile_round_trips_through_the_store_and_its_diff_names_k1_to_k4() {
+    let tmp = tempdir();
+    let root = tmp.path().join("store");
+    let store = Store::open(&root).unwrap_or_else(|e| panic!("{e}"));
+    let id = "usb:2bdf:0280:FISHEYE";
+    let mut v1 = profile(id, 0, true);
+    v1.calibration = report(&kb4_camera(), 1e-5);
+    let first = commit(&store, &v1).unwrap_or_else(|e| panic!("{e}"));
+    let stored = read_document(&first.current).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(stored, v1, "the document reads back as written");
+    let json: serde_json::Value =
+        serde_json::from_slice(&read(&first.current)).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(json["calibration"]["distortion"]["model"], "kb4");
+    assert_eq!(
+        json["calibration"]["distortion"]["coefficients"],
+        serde_json::json!([0.021, -0.0043, 0.00052, -0.000047])
+    );
+
+    // k3 moves by 4σ and k4 by 1σ: the change names them k3 and k4 (not OpenCV's p1 and p2, whose
+    // slots kb4 does not use) and compares them with their own σ
+    let mut v2 = v1.clone();
+    v2.created = rfc3339_from_unix(1_790_000_100);
+    v2.calibration.distortion.coefficients[2] += 4e-5 * 2f64.sqrt();
+    v2.calibration.distortion.coefficients[3] += 1e-5 * 2f64.sqrt();
+    let second = commit(&store, &v2).unwrap_or_else(|e| panic!("{e}"));
+    let change = second.change.unwrap_or_else(|| panic!("no change"));
+    let names: Vec<&str> = change.params.iter().map(|p| p.name.as_str()).collect();
+    assert_eq!(names, ["fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"]);
+    let by_name = |n: &str| {
+        change
+            .params
+            .iter()
+            .find(|p| p.name == n)
+            .map(|p| p.delta_sigma)
+    };
+    assert!(
+        (by_name("k3").unwrap_or(f64::NAN) - 4.0).abs() < 1e-6,
+        "{change:?}"
+    );
+    assert!(
+        (by_name("k4").unwrap_or(f64::NAN) - 1.0).abs() < 1e-6,
+        "{change:?}"
+    );
+    assert!(!change.jump && change.notes.is_empty(), "{change:?}");
+
+    // a brown5 profile replacing it is a changed model: a jump, said in a note
+    let third = commit(&store, &profile(id, 0, true)).unwrap_or_else(|e| panic!("{e}"));
+    let change = third.change.unwrap_or_else(|| panic!("no change"));
+    assert!(change.jump);
+    assert_eq!(
+        change.notes,
+        ["distortion model changed from kb4 to brown5"],
+        "{change:?}"
+    );
+
+    // `profile show` of the kb4 version in history names the coefficients with their σ
+    let history = store.history(id).unwrap_or_else(|e| panic!("{e}"));
+    let out = cubecal(&["profile", "show", &history[1].to_string_lossy()], &root);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(0), "{text}");
+    assert!(
+        text.contains("distortion: kb4 k1 0.021000 ± 0.000010, k2 -0.004300 ± 0.000010, k3 0.000577 ± 0.000010, k4 -0.000033 ± 0.000010"),
+        "{text}"
     );
 }
 

@@ -355,7 +355,7 @@ fn print_human(r: &RunResult, store: Option<&std::path::Path>) {
         w(format!(
             "  distortion ({}): {}",
             c.distortion.model,
-            super::fmt_distortion(&c.distortion.coefficients, &c.std_dev)
+            super::fmt_distortion(&c.distortion, &c.std_dev)
         ));
     }
     for n in &r.notes {

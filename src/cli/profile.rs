@@ -311,7 +311,7 @@ fn show(store: &StoreArg, device: &str, out: Output) -> anyhow::Result<u8> {
     println!(
         "distortion: {} {}",
         display_identity(&c.distortion.model),
-        super::fmt_distortion(&c.distortion.coefficients, &c.std_dev)
+        super::fmt_distortion(&c.distortion, &c.std_dev)
     );
     for (name, sd) in &c.std_dev {
         println!("  σ {:<5} {sd:.6}", display_identity(name));
