@@ -2,19 +2,28 @@
 """Load cubecal's exports with the real tools and project points with them.
 
 Usage: project.py DIR
-DIR holds points.json ({"points": [[X, Y, Z], ...]} in the camera frame), opencv.yaml, ros.yaml and
-model.cameramodel, written by tests/profile.rs. Prints one JSON object on stdout:
-{"opencv": [[u, v], ...], "ros": [...], "mrcal": [...], "loaded": {...}} with what each tool read, so the
-Rust test can compare the pixels with cubecal's own projection (the comparison and its tolerance live
-there). Exit 2 when a tool is missing (the message names it), 1 on any other failure.
+DIR holds points.json ({"points": [[X, Y, Z], ...]} in the camera frame), opencv.yaml and ros.yaml, and
+model.cameramodel when the profile has one, written by tests/profile.rs. Prints one JSON object on
+stdout: {"opencv": [[u, v] or null, ...], "ros": [...], "mrcal": [...], "opencv_theta": [...],
+"loaded": {...}} with what each tool read, so the Rust test can compare the pixels
+with cubecal's own projection (the comparison and its tolerance live there). A point a tool cannot
+project is null (see the fisheye below); a file that is absent gives null for its tool. Exit 2 when a
+tool is missing (the message names it), 1 on any other failure.
 
-- OpenCV: cv2.FileStorage reads camera_matrix / distortion_coefficients; cv2.projectPoints projects.
+- OpenCV: cv2.FileStorage reads camera_matrix / distortion_coefficients (and fisheye_model, the flag
+  OpenCV's calibration tutorial writes); cv2.projectPoints projects, or cv2.fisheye.projectPoints when
+  fisheye_model is 1. cv::fisheye divides by Z before it takes the angle, so it projects a point behind
+  the camera (Z <= 0) as its reflection through the centre: those points are null in "opencv" and their
+  raw cv2.fisheye result is in "opencv_behind". "opencv_theta" is cv::fisheye's documented formula
+  evaluated on the angle itself, θ = atan2(√(X² + Y²), Z), with the K and D cv2.FileStorage loaded: what
+  the file's numbers mean past 90°, where cv2.fisheye cannot go.
 - ROS: camera_calibration_parsers.readCalibration (ROS's own C++ parser behind a Python wrapper) reads
   the camera_info YAML into a sensor_msgs/CameraInfo; its K and D are projected with cv2.projectPoints,
-  which is what ROS's image_geometry does.
+  or cv2.fisheye.projectPoints for distortion_model equidistant, as ROS's image_geometry does.
 - mrcal: mrcal.cameramodel reads the .cameramodel; mrcal.project projects with mrcal's own lens models.
 """
 import json
+import math
 import os
 import sys
 
@@ -28,11 +37,50 @@ except ImportError as e:  # pragma: no cover - reported to the Rust test
     sys.exit(2)
 
 
+def fisheye_in_front(pts, k, dist):
+    """cv2.fisheye.projectPoints for the points with Z > 0; null for the others."""
+    zero = np.zeros(3, dtype=np.float64)
+    front = pts[:, 0, 2] > 0
+    out = [None] * len(pts)
+    if front.any():
+        uv, _ = cv2.fisheye.projectPoints(pts[front], zero, zero, k, dist)
+        for i, p in zip(np.flatnonzero(front), uv.reshape(-1, 2).tolist()):
+            out[i] = p
+    behind = [None] * len(pts)
+    if (~front).any():
+        uv, _ = cv2.fisheye.projectPoints(pts[~front], zero, zero, k, dist)
+        for i, p in zip(np.flatnonzero(~front), uv.reshape(-1, 2).tolist()):
+            behind[i] = p
+    return out, behind
+
+
+def project_opencv(pts, k, dist, fisheye):
+    zero = np.zeros(3, dtype=np.float64)
+    if fisheye:
+        return fisheye_in_front(pts, k, dist)
+    uv, _ = cv2.projectPoints(pts, zero, zero, k, dist)
+    return uv.reshape(-1, 2).tolist(), None
+
+
+def opencv_theta(pts, k, dist):
+    """cv::fisheye's formula, θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸), on the angle itself."""
+    k1, k2, k3, k4 = dist.ravel().tolist()
+    out = []
+    for x, y, z in pts.reshape(-1, 3).tolist():
+        rho = math.hypot(x, y)
+        th = math.atan2(rho, z)
+        t2 = th * th
+        td = th * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+        s = td / rho if rho > 0 else 0.0
+        xd, yd = x * s, y * s
+        out.append([k[0, 0] * xd + k[0, 1] * yd + k[0, 2], k[1, 1] * yd + k[1, 2]])
+    return out
+
+
 def main():
     d = sys.argv[1]
     with open(os.path.join(d, "points.json")) as f:
         pts = np.array(json.load(f)["points"], dtype=np.float64).reshape(-1, 1, 3)
-    zero = np.zeros(3, dtype=np.float64)
     out = {"loaded": {}}
 
     fs = cv2.FileStorage(os.path.join(d, "opencv.yaml"), cv2.FILE_STORAGE_READ)
@@ -42,12 +90,15 @@ def main():
     dist = fs.getNode("distortion_coefficients").mat()
     w = int(fs.getNode("image_width").real())
     h = int(fs.getNode("image_height").real())
+    fisheye_node = fs.getNode("fisheye_model")
+    fisheye = int(fisheye_node.real()) if not fisheye_node.empty() else None
     fs.release()
     if k is None or dist is None:
         raise SystemExit("opencv.yaml: camera_matrix or distortion_coefficients missing")
-    uv, _ = cv2.projectPoints(pts, zero, zero, k, dist)
-    out["opencv"] = uv.reshape(-1, 2).tolist()
-    out["loaded"]["opencv"] = {"K": k.tolist(), "D": dist.ravel().tolist(), "size": [w, h]}
+    out["opencv"], out["opencv_behind"] = project_opencv(pts, k, dist, fisheye == 1)
+    out["opencv_theta"] = opencv_theta(pts, k, dist) if fisheye == 1 else None
+    out["loaded"]["opencv"] = {"K": k.tolist(), "D": dist.ravel().tolist(), "size": [w, h],
+                               "fisheye_model": fisheye}
 
     res = camera_calibration_parsers.readCalibration(os.path.join(d, "ros.yaml"))
     if res is None:
@@ -55,18 +106,21 @@ def main():
     name, info = res
     k = np.array(info.K, dtype=np.float64).reshape(3, 3)
     dist = np.array(info.D, dtype=np.float64)
-    uv, _ = cv2.projectPoints(pts, zero, zero, k, dist)
-    out["ros"] = uv.reshape(-1, 2).tolist()
+    out["ros"], _ = project_opencv(pts, k, dist, info.distortion_model == "equidistant")
     out["loaded"]["ros"] = {"name": name, "K": k.tolist(), "D": dist.tolist(),
                             "model": info.distortion_model, "size": [info.width, info.height],
                             "P": list(info.P), "R": list(info.R)}
 
-    m = mrcal.cameramodel(os.path.join(d, "model.cameramodel"))
-    lensmodel, intrinsics = m.intrinsics()
-    uv = mrcal.project(pts.reshape(-1, 3), lensmodel, intrinsics)
-    out["mrcal"] = np.asarray(uv).reshape(-1, 2).tolist()
-    out["loaded"]["mrcal"] = {"lensmodel": lensmodel, "intrinsics": list(map(float, intrinsics)),
-                              "size": [int(x) for x in m.imagersize()]}
+    path = os.path.join(d, "model.cameramodel")
+    out["mrcal"] = None
+    if os.path.exists(path):
+        m = mrcal.cameramodel(path)
+        lensmodel, intrinsics = m.intrinsics()
+        uv = mrcal.project(pts.reshape(-1, 3), lensmodel, intrinsics)
+        out["mrcal"] = np.asarray(uv).reshape(-1, 2).tolist()
+        out["loaded"]["mrcal"] = {"lensmodel": lensmodel,
+                                  "intrinsics": list(map(float, intrinsics)),
+                                  "size": [int(x) for x in m.imagersize()]}
 
     json.dump(out, sys.stdout)
 
