@@ -324,14 +324,20 @@ fn a_kb4_profile_round_trips_through_the_store_and_its_diff_names_k1_to_k4() {
         "{text}"
     );
 
-    // its mrcal export from the command line: refused whole, naming the model
+    // its exports from the command line: kalibr written, mrcal refused whole, naming the model
     let file = history[1].to_string_lossy().into_owned();
+    let out = cubecal(&["profile", "export", &file, "--format", "kalibr"], &root);
+    assert_eq!(out.status.code(), Some(0));
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout),
+        export::kalibr_camchain_yaml(&v2).unwrap_or_else(|e| panic!("{e}"))
+    );
     let out = cubecal(&["profile", "export", &file, "--format", "mrcal"], &root);
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(3), "{err}");
     assert!(
         err.starts_with("error: cannot export to mrcal: the kb4 lens (Kannala–Brandt")
-            && err.ends_with("use opencv, ros or colmap\n"),
+            && err.ends_with("use opencv, ros, colmap or kalibr\n"),
         "{err}"
     );
 }
@@ -863,7 +869,7 @@ fn python_with_tools() -> Option<String> {
     ];
     candidates.into_iter().flatten().find(|py| {
         Command::new(py)
-            .args(["-c", "import cv2, mrcal, camera_calibration_parsers"])
+            .args(["-c", "import cv2, mrcal, camera_calibration_parsers, yaml"])
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .status()
@@ -931,7 +937,7 @@ fn points_covering_the_image(cam: &Camera) -> Vec<Vector3<f64>> {
 fn python_or_skip(test: &str) -> Option<String> {
     let python = python_with_tools();
     if python.is_none() {
-        let reason = "python3 with cv2, mrcal and camera_calibration_parsers not found (run deploy/install-test-tools.sh)";
+        let reason = "python3 with cv2, mrcal, camera_calibration_parsers and yaml not found (run deploy/install-test-tools.sh)";
         assert!(!tools_required(), "CUBECAL_REQUIRE_TOOLS=1 but {reason}");
         eprintln!("SKIPPED {test}: {reason}");
     }
@@ -1011,8 +1017,20 @@ fn exports_load_in_opencv_ros_and_mrcal_and_project_like_cubecal() {
             "model.cameramodel",
             export::mrcal_cameramodel(&p).unwrap_or_else(|e| panic!("{e}")),
         );
+        // Kalibr's radtan has no k3: the lenses with one are refused (kalibr_refuses_…)
+        let kalibr = export::kalibr_camchain_yaml(&p);
+        assert_eq!(
+            kalibr.is_ok(),
+            matches!(name, "pinhole" | "brown5_no_k3"),
+            "{name}: {kalibr:?}"
+        );
+        let mut tools = vec!["opencv", "ros", "mrcal"];
+        if let Ok(text) = kalibr {
+            write("kalibr.yaml", text);
+            tools.push("kalibr");
+        }
         let v = project_with_tools(&python, tmp.path(), name);
-        for tool in ["opencv", "ros", "mrcal"] {
+        for tool in tools {
             let (max_err, n) = max_distance(&ours, &pixels(&v, tool));
             assert_eq!(n, ours.len(), "{name} via {tool}: every point projected");
             let max_shift = pts
@@ -1083,7 +1101,7 @@ fn off_axis_deg(p: &Vector3<f64>) -> f64 {
 }
 
 #[test]
-fn kb4_exports_load_in_cv2_fisheye_and_ros_and_project_like_cubecal() {
+fn kb4_exports_load_in_cv2_fisheye_ros_and_kalibr_and_project_like_cubecal() {
     let Some(python) = python_or_skip("kb4 exports test") else {
         return;
     };
@@ -1130,6 +1148,7 @@ fn kb4_exports_load_in_cv2_fisheye_and_ros_and_project_like_cubecal() {
         for (file, text) in [
             ("opencv.yaml", export::opencv_yaml(&p)),
             ("ros.yaml", export::ros_camera_info_yaml(&p)),
+            ("kalibr.yaml", export::kalibr_camchain_yaml(&p)),
         ] {
             write(file, text.unwrap_or_else(|e| panic!("{name} {file}: {e}")));
         }
@@ -1148,8 +1167,8 @@ fn kb4_exports_load_in_cv2_fisheye_and_ros_and_project_like_cubecal() {
         }
         let v = project_with_tools(&python, tmp.path(), name);
 
-        // cv::fisheye (OpenCV's file and ROS's) in front of the camera
-        for tool in ["opencv", "ros"] {
+        // cv::fisheye (OpenCV's file and ROS's), and Kalibr's equidistant, in front of the camera
+        for tool in ["opencv", "ros", "kalibr"] {
             let (max_err, n) = max_distance(&ours, &pixels(&v, tool));
             println!(
                 "{name} via {tool}: {n} points with z > 0 (up to {widest_in_front:.1}° off the axis), max |cubecal − {tool}| = {max_err:.3e} px"
@@ -1227,11 +1246,28 @@ fn kb4_exports_load_in_cv2_fisheye_and_ros_and_project_like_cubecal() {
                 0.0
             ])
         );
+        let cam0 = &loaded["kalibr"]["cam0"];
+        assert_eq!(
+            loaded["kalibr"]
+                .as_object()
+                .map(|o| o.keys().cloned().collect::<Vec<_>>()),
+            Some(vec!["cam0".to_string()])
+        );
+        assert_eq!(cam0["camera_model"], "pinhole");
+        assert_eq!(
+            cam0["intrinsics"],
+            serde_json::json!([cam.fx(), cam.fy(), cam.cx(), cam.cy()])
+        );
+        assert_eq!(cam0["distortion_model"], "equidistant");
+        assert_eq!(cam0["distortion_coeffs"], serde_json::json!(coeffs));
+        assert_eq!(cam0["resolution"], serde_json::json!(cam.image_size));
+        assert!(cam0.get("T_cam_imu").is_none(), "{cam0}");
+        assert_eq!(cam0["rostopic"], "/cam0/image_raw");
     }
 }
 
 #[test]
-fn mrcal_refuses_kb4_naming_the_model() {
+fn mrcal_and_kalibr_refuse_what_they_cannot_express_exactly() {
     let export_of = |cam: &Camera, f: fn(&Profile) -> Result<String, export::ExportError>| {
         let mut p = profile("cam", 0, true);
         p.calibration = report(cam, 0.1);
@@ -1246,6 +1282,44 @@ fn mrcal_refuses_kb4_naming_the_model() {
     assert!(
         msg.contains("kb4") && msg.contains("Kannala–Brandt") && msg.contains("k3 = 5.20e-4"),
         "{msg}"
+    );
+    // Kalibr's radtan is k1, k2, p1, p2: a k3 (or brown8's rational terms) is refused, naming them
+    let cams = distorted_cameras();
+    let by_name = |n: &str| {
+        cams.iter()
+            .find(|(name, _)| *name == n)
+            .map(|(_, c)| c.clone())
+            .unwrap_or_else(|| panic!("{n}"))
+    };
+    let msg = refused(export_of(&by_name("brown5"), export::kalibr_camchain_yaml));
+    assert!(
+        msg.starts_with(
+            "cannot export to Kalibr: the brown5 lens has k3 = -1.00e-2; Kalibr's radtan"
+        ),
+        "{msg}"
+    );
+    let msg = refused(export_of(&by_name("brown8"), export::kalibr_camchain_yaml));
+    assert!(
+        msg.contains("the brown8 lens has k3 = 2.00e-3, k4 = 6.50e-1, k5 = 1.00e-1, k6 = 4.00e-3"),
+        "{msg}"
+    );
+    // … and what it can express exactly is written: brown8 with k3..k6 = 0 is radtan, pinhole none
+    let radtan8 = by_name("brown8").with_distortion(
+        DistortionModel::Brown8,
+        &[0.4, 0.05, 0.0008, -0.0011, 0.0, 0.0, 0.0, 0.0],
+    );
+    let text = export_of(&radtan8, export::kalibr_camchain_yaml).unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        text.contains(
+            "  distortion_model: radtan\n  distortion_coeffs: [0.4, 0.05, 0.0008, -0.0011]\n"
+        ),
+        "{text}"
+    );
+    let text = export_of(&by_name("pinhole"), export::kalibr_camchain_yaml)
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        text.contains("  intrinsics: [500.0, 500.0, 319.5, 239.5]\n  distortion_model: none\n  distortion_coeffs: []\n  resolution: [640, 480]\n"),
+        "{text}"
     );
 }
 
@@ -1446,6 +1520,15 @@ fn cli_show_export_diff_rollback_and_their_exit_codes() {
     );
     let out = cubecal(&["profile", "export", id, "--format", "png"], &root);
     assert_eq!(out.status.code(), Some(2), "unknown format: usage");
+    // a lens a format cannot express is refused whole (exit 3), saying what to do
+    let out = cubecal(&["profile", "export", id, "--format", "kalibr"], &root);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{err}");
+    assert!(
+        err.starts_with("error: cannot export to Kalibr: the brown5 lens has k3 = -1.00e-2;")
+            && err.ends_with("(for Kalibr: --model brown5 --fix k3)\n"),
+        "{err}"
+    );
 
     let history = store.history(id).unwrap_or_else(|e| panic!("{e}"));
     let old = history[0].to_string_lossy().into_owned();

@@ -58,7 +58,7 @@ pub enum ProfileCommand {
         /// Camera identity or folder name, or a profile file.
         device: String,
         /// opencv (FileStorage YAML), ros (camera_info YAML), mrcal (.cameramodel), colmap
-        /// (cameras.txt). A lens the format cannot express exactly is refused.
+        /// (cameras.txt), kalibr (camchain YAML). A lens the format cannot express exactly is refused.
         #[arg(long)]
         format: Format,
         /// Write to this file instead of standard output.

@@ -6,6 +6,7 @@
 //! | ROS `camera_info` YAML ([`ros_camera_info_yaml`]) | `camera_calibration_parsers`' layout | `plumb_bob` (5), `rational_polynomial` (8) | `equidistant`, D = (k1, k2, k3, k4) as `image_geometry` hands it to `cv::fisheye` | same as OpenCV |
 //! | mrcal `.cameramodel` ([`mrcal_cameramodel`]) | Python-literal dict, identity extrinsics | `LENSMODEL_PINHOLE`/`OPENCV5`/`OPENCV8` | refused, unless k3 = k4 = 0: see below | same as OpenCV |
 //! | COLMAP `cameras.txt` ([`colmap_cameras_txt`]) | one camera line | `PINHOLE`/`OPENCV`/`FULL_OPENCV` | `OPENCV_FISHEYE` (fx, fy, cx, cy, k1..k4) | centre of the top-left pixel at (0.5, 0.5): `cx`, `cy` shifted by +0.5 |
+//! | Kalibr camchain YAML ([`kalibr_camchain_yaml`]) | one camera, `cam0`, `camera_model: pinhole`, `intrinsics: [fu, fv, pu, pv]`, `resolution` | `none` (pinhole); `radtan` (k1, k2, p1, p2) when every coefficient past p2 is 0, else refused | `equidistant` (k1..k4) | same as OpenCV |
 //!
 //! None of these formats has a skew term (OpenCV's `projectPoints` ignores `K[0][1]`), so a profile
 //! with a non-zero skew is refused with [`ExportError::Unsupported`] rather than exported wrongly; so
@@ -24,7 +25,14 @@
 //! which projects that CAHVORE past 90° although mrcal's metadata says it does not project behind the
 //! camera; mrcal cannot solve for CAHVORE, having no gradients for it.)
 //!
-//! The identity is not written into the OpenCV, mrcal or COLMAP files, and only as a sanitised
+//! **Kalibr.** The camchain holds only what a camera calibration knows: `T_cam_imu` is left out (it is
+//! what `kalibr_calibrate_imu_camera` computes and writes into its own camchain-imucam file, which is
+//! where Kalibr's exporters read it; an identity here would claim the IMU's axes are the camera's), and
+//! `rostopic`, which Kalibr's IMU–camera calibration and validator read, is the placeholder
+//! `/cam0/image_raw` with a comment to set it. Kalibr's projection divides by `z`, so it sees the
+//! fisheye to 90° off the axis, as `cv::fisheye` does.
+//!
+//! The identity is not written into the OpenCV, mrcal, COLMAP or Kalibr files, and only as a sanitised
 //! `camera_name` into the ROS file: USB serial strings are untrusted, and none of these parsers needs it.
 
 use super::{Profile, intrinsic_values};
@@ -54,10 +62,17 @@ pub enum Format {
     Ros,
     Mrcal,
     Colmap,
+    Kalibr,
 }
 
 impl Format {
-    pub const ALL: [Format; 4] = [Format::Opencv, Format::Ros, Format::Mrcal, Format::Colmap];
+    pub const ALL: [Format; 5] = [
+        Format::Opencv,
+        Format::Ros,
+        Format::Mrcal,
+        Format::Colmap,
+        Format::Kalibr,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -65,13 +80,14 @@ impl Format {
             Format::Ros => "ros",
             Format::Mrcal => "mrcal",
             Format::Colmap => "colmap",
+            Format::Kalibr => "kalibr",
         }
     }
 
     /// The usual file name extension.
     pub fn extension(self) -> &'static str {
         match self {
-            Format::Opencv | Format::Ros => "yaml",
+            Format::Opencv | Format::Ros | Format::Kalibr => "yaml",
             Format::Mrcal => "cameramodel",
             Format::Colmap => "txt",
         }
@@ -84,6 +100,7 @@ impl Format {
             Format::Ros => ros_camera_info_yaml(profile),
             Format::Mrcal => mrcal_cameramodel(profile),
             Format::Colmap => colmap_cameras_txt(profile),
+            Format::Kalibr => kalibr_camchain_yaml(profile),
         }
     }
 }
@@ -94,7 +111,9 @@ impl std::str::FromStr for Format {
         Format::ALL
             .into_iter()
             .find(|f| f.name() == s)
-            .ok_or_else(|| format!("unknown export format '{s}' (opencv, ros, mrcal, colmap)"))
+            .ok_or_else(|| {
+                format!("unknown export format '{s}' (opencv, ros, mrcal, colmap, kalibr)")
+            })
     }
 }
 
@@ -321,7 +340,7 @@ pub fn mrcal_cameramodel(profile: &Profile) -> Result<String, ExportError> {
                     reason: format!(
                         "the kb4 lens (Kannala–Brandt, cv::fisheye) has k3 = {:.2e}, k4 = {:.2e}; \
                          mrcal has no model with θ⁷, θ⁹ terms (CAHVORE stops at θ⁵), and no \
-                         approximation is written: use opencv, ros or colmap",
+                         approximation is written: use opencv, ros, colmap or kalibr",
                         i.coefficients.get(2).copied().unwrap_or(f64::NAN),
                         i.coefficients.get(3).copied().unwrap_or(f64::NAN),
                     ),
@@ -368,6 +387,66 @@ pub fn colmap_cameras_txt(profile: &Profile) -> Result<String, ExportError> {
         i.width,
         i.height,
         params.join(" ")
+    ))
+}
+
+/// A Kalibr camera chain (`camchain.yaml`) of one camera, `cam0`, as Kalibr's `ConfigReader` reads it:
+/// `camera_model: pinhole`, `intrinsics: [fu, fv, pu, pv]`, `distortion_model` with its
+/// `distortion_coeffs` (`equidistant` for kb4; `radtan` = k1, k2, p1, p2 for a Brown–Conrady lens
+/// whose further coefficients are all 0; `none` for a pinhole), `resolution: [w, h]`, and `rostopic`
+/// as a placeholder (see the module docs for what is left out and why).
+pub fn kalibr_camchain_yaml(profile: &Profile) -> Result<String, ExportError> {
+    let i = intrinsics(profile, "Kalibr")?;
+    let unsupported = |reason: String| ExportError::Unsupported {
+        format: "Kalibr",
+        reason,
+    };
+    let (model, coeffs) = match i.model {
+        DistortionModel::Pinhole => ("none", vec![]),
+        DistortionModel::Kb4 => ("equidistant", i.coefficients.clone()),
+        DistortionModel::Brown5 | DistortionModel::Brown8 => {
+            let beyond: Vec<String> = i
+                .model
+                .coefficient_names()
+                .zip(&i.coefficients)
+                .skip(4)
+                .filter(|(_, v)| **v != 0.0)
+                .map(|(name, v)| format!("{name} = {v:.2e}"))
+                .collect();
+            if !beyond.is_empty() {
+                // one line under the CLI's 240 characters: the figures to 3 digits
+                return Err(unsupported(format!(
+                    "the {} lens has {}; Kalibr's radtan has only k1, k2, p1, p2, and no \
+                     approximation is written (for Kalibr: --model brown5 --fix k3)",
+                    i.model.name(),
+                    beyond.join(", ")
+                )));
+            }
+            ("radtan", i.coefficients[..4].to_vec())
+        }
+    };
+    if i.cx < 0.0 || i.cy < 0.0 {
+        return Err(unsupported(format!(
+            "Kalibr refuses a principal point below 0 (pu {}, pv {})",
+            fmt_f64(i.cx),
+            fmt_f64(i.cy)
+        )));
+    }
+    Ok(format!(
+        "# Kalibr camera chain (camchain.yaml) written by cubecal {} from the profile of {}\n\
+         # rostopic is a placeholder: set it to the topic of this camera's images\n\
+         cam0:\n  camera_model: pinhole\n  intrinsics: [{}]\n  distortion_model: {model}\n  \
+         distortion_coeffs: [{}]\n  resolution: [{}, {}]\n  rostopic: /cam0/image_raw\n",
+        profile
+            .software_version
+            .chars()
+            .filter(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '+'))
+            .collect::<String>(),
+        profile.created.escape_default(),
+        list(&[i.fx, i.fy, i.cx, i.cy]),
+        list(&coeffs),
+        i.width,
+        i.height
     ))
 }
 
