@@ -3,19 +3,21 @@
 #   python3-opencv                       cv2.FileStorage + cv2.projectPoints (OpenCV FileStorage YAML)
 #   python3-camera-calibration-parsers   ROS's camera_info YAML parser (camera_calibration_parsers)
 #   python3-mrcal                        mrcal.cameramodel + mrcal.project (.cameramodel)
+#   python3-yaml                         yaml.safe_load, as Kalibr's ConfigReader reads its camchain
+#                                        YAML (Kalibr itself is a ROS workspace, not installed)
 #   postgresql                           initdb + pg_ctl for the throw-away cluster of the PostgreSQL
 #                                        profile store's tests (tests/profile_postgres.rs,
 #                                        tests/support/pg.rs; found under /usr/lib/postgresql/N/bin)
 #   chromium                             headless browser for the live page's test (tests/live_page.rs,
 #                                        driven over the DevTools protocol) and the report's
 #                                        (tests/report_chromium.sh)
-# All three are Debian packages (bookworm: OpenCV 4.6, ROS parsers 1.12, mrcal 2.2) for the system
+# All are Debian packages (bookworm: OpenCV 4.6, ROS parsers 1.12, mrcal 2.2) for the system
 # python, /usr/bin/python3, which the tests use first (CUBECAL_PYTHON overrides). Idempotent, quiet when
 # everything is present; exits non-zero if a tool still cannot be imported afterwards.
 set -euo pipefail
 
-packages=(python3-opencv python3-camera-calibration-parsers python3-mrcal postgresql chromium)
-check='import cv2, mrcal, camera_calibration_parsers'
+packages=(python3-opencv python3-camera-calibration-parsers python3-mrcal python3-yaml postgresql chromium)
+check='import cv2, mrcal, camera_calibration_parsers, yaml'
 python="${CUBECAL_PYTHON:-/usr/bin/python3}"
 
 have_initdb() { compgen -G '/usr/lib/postgresql/*/bin/initdb' >/dev/null; }
@@ -45,6 +47,6 @@ if ! have_chromium; then
   exit 1
 fi
 if ! "$python" -c "$check"; then
-  echo "install-test-tools: $python still cannot import cv2, mrcal and camera_calibration_parsers" >&2
+  echo "install-test-tools: $python still cannot import cv2, mrcal, camera_calibration_parsers and yaml" >&2
   exit 1
 fi

@@ -122,24 +122,6 @@ impl DistortionModel {
         }
     }
 
-    /// The model's coefficient names, in its own (OpenCV's) order.
-    pub fn coefficient_names(self) -> &'static [&'static str] {
-        const BROWN: [&str; 8] = ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"];
-        const KB4: [&str; 4] = ["k1", "k2", "k3", "k4"];
-        match self {
-            DistortionModel::Pinhole => &[],
-            DistortionModel::Brown5 => &BROWN[..5],
-            DistortionModel::Brown8 => &BROWN,
-            DistortionModel::Kb4 => &KB4,
-        }
-    }
-
-    /// The model named `name` ([`DistortionModel::name`]); Brown–Conrady 5 for a name this build
-    /// does not know (the callers display numbers from files that were validated when written).
-    pub fn from_name_or_brown(name: &str) -> DistortionModel {
-        name.parse().unwrap_or(DistortionModel::Brown5)
-    }
-
     /// Where the model's coefficients live in the full intrinsic vector, in the model's own order.
     pub fn coefficient_slots(self) -> &'static [usize] {
         const BROWN: [usize; 8] = [
@@ -159,6 +141,14 @@ impl DistortionModel {
             DistortionModel::Brown8 => &BROWN,
             DistortionModel::Kb4 => &KB4,
         }
+    }
+
+    /// The names of the model's coefficients in its own order, as in [`PARAM_NAMES`]: OpenCV's
+    /// `k1, k2, p1, p2, k3, …` for Brown–Conrady, `k1, k2, k3, k4` for kb4.
+    pub fn coefficient_names(self) -> impl Iterator<Item = &'static str> {
+        self.coefficient_slots()
+            .iter()
+            .map(|&slot| PARAM_NAMES[slot])
     }
 
     /// The model's name as used on the command line and in files.

@@ -68,6 +68,21 @@ fn solve_human_output_and_fix_options() {
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(text.contains("p1 = 0.000000 (fixed)"), "{text}");
     assert!(text.contains("converged"), "{text}");
+
+    // kb4's coefficients are k1..k4 with their own σ (not OpenCV's k1, k2, p1, p2)
+    let out = cubecal(&[
+        "solve",
+        "fixtures/observations/cube_synthetic.json",
+        "--model",
+        "kb4",
+        "--fix",
+        "k4",
+    ]);
+    assert_eq!(out.status.code(), Some(0));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("  k3 = ") && text.contains(" ± "), "{text}");
+    assert!(text.contains("  k4 = 0.000000 (fixed)"), "{text}");
+    assert!(!text.contains("p1 = ") && !text.contains("p2 = "), "{text}");
 }
 
 #[test]

@@ -231,7 +231,7 @@ const CASES: &[Case] = &[
     },
     Case {
         command: "profile",
-        failure: "store directory missing, no profile for the camera, a profile file unreadable, malformed or of a newer format",
+        failure: "store directory missing, no profile for the camera, a profile file unreadable, malformed or of a newer format, a lens the export format cannot express exactly",
         code: 3,
         args: &["profile", "list", "--store", "{tmp}/no-such-store"],
     },

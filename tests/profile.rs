@@ -36,10 +36,10 @@ const DIR_VAR: &str = "CUBECAL_PROFILE_DIR";
 
 fn report(camera: &Camera, sigma: f64) -> CalibrationReport {
     let k = camera.k_matrix();
+    // σ and covariance under the names the solver gives them (kb4's coefficients are k1, k2, k3, k4)
     let names: Vec<&str> = ["fx", "fy", "cx", "cy"]
         .into_iter()
-        .chain(["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"])
-        .take(4 + camera.model.n_coefficients())
+        .chain(camera.model.coefficient_names())
         .collect();
     let n = names.len();
     CalibrationReport {
@@ -249,6 +249,96 @@ fn commits_keep_history_and_measure_the_change_in_sigma() {
         out.change.map(|c| c.notes.len()),
         Some(1),
         "the note says why"
+    );
+}
+
+/// The fisheye of issue 32: fx ≈ 350 at 1280×960, Kannala–Brandt in OpenCV's `cv::fisheye` order.
+fn kb4_camera() -> Camera {
+    Camera::pinhole([1280, 960], 350.4, 349.7, 641.3, 478.6)
+        .with_distortion(DistortionModel::Kb4, &[0.021, -0.0043, 0.00052, -0.000047])
+}
+
+#[test]
+fn a_kb4_profile_round_trips_through_the_store_and_its_diff_names_k1_to_k4() {
+    let tmp = tempdir();
+    let root = tmp.path().join("store");
+    let store = Store::open(&root).unwrap_or_else(|e| panic!("{e}"));
+    let id = "usb:2bdf:0280:FISHEYE";
+    let mut v1 = profile(id, 0, true);
+    v1.calibration = report(&kb4_camera(), 1e-5);
+    let first = commit(&store, &v1).unwrap_or_else(|e| panic!("{e}"));
+    let stored = read_document(&first.current).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(stored, v1, "the document reads back as written");
+    let json: serde_json::Value =
+        serde_json::from_slice(&read(&first.current)).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(json["calibration"]["distortion"]["model"], "kb4");
+    assert_eq!(
+        json["calibration"]["distortion"]["coefficients"],
+        serde_json::json!([0.021, -0.0043, 0.00052, -0.000047])
+    );
+
+    // k3 moves by 4σ and k4 by 1σ: the change names them k3 and k4 (not OpenCV's p1 and p2, whose
+    // slots kb4 does not use) and compares them with their own σ
+    let mut v2 = v1.clone();
+    v2.created = rfc3339_from_unix(1_790_000_100);
+    v2.calibration.distortion.coefficients[2] += 4e-5 * 2f64.sqrt();
+    v2.calibration.distortion.coefficients[3] += 1e-5 * 2f64.sqrt();
+    let second = commit(&store, &v2).unwrap_or_else(|e| panic!("{e}"));
+    let change = second.change.unwrap_or_else(|| panic!("no change"));
+    let names: Vec<&str> = change.params.iter().map(|p| p.name.as_str()).collect();
+    assert_eq!(names, ["fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"]);
+    let by_name = |n: &str| {
+        change
+            .params
+            .iter()
+            .find(|p| p.name == n)
+            .map(|p| p.delta_sigma)
+    };
+    assert!(
+        (by_name("k3").unwrap_or(f64::NAN) - 4.0).abs() < 1e-6,
+        "{change:?}"
+    );
+    assert!(
+        (by_name("k4").unwrap_or(f64::NAN) - 1.0).abs() < 1e-6,
+        "{change:?}"
+    );
+    assert!(!change.jump && change.notes.is_empty(), "{change:?}");
+
+    // a brown5 profile replacing it is a changed model: a jump, said in a note
+    let third = commit(&store, &profile(id, 0, true)).unwrap_or_else(|e| panic!("{e}"));
+    let change = third.change.unwrap_or_else(|| panic!("no change"));
+    assert!(change.jump);
+    assert_eq!(
+        change.notes,
+        ["distortion model changed from kb4 to brown5"],
+        "{change:?}"
+    );
+
+    // `profile show` of the kb4 version in history names the coefficients with their σ
+    let history = store.history(id).unwrap_or_else(|e| panic!("{e}"));
+    let out = cubecal(&["profile", "show", &history[1].to_string_lossy()], &root);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(0), "{text}");
+    assert!(
+        text.contains("distortion: kb4 k1 0.021000 ± 0.000010, k2 -0.004300 ± 0.000010, k3 0.000577 ± 0.000010, k4 -0.000033 ± 0.000010"),
+        "{text}"
+    );
+
+    // its exports from the command line: kalibr written, mrcal refused whole, naming the model
+    let file = history[1].to_string_lossy().into_owned();
+    let out = cubecal(&["profile", "export", &file, "--format", "kalibr"], &root);
+    assert_eq!(out.status.code(), Some(0));
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout),
+        export::kalibr_camchain_yaml(&v2).unwrap_or_else(|e| panic!("{e}"))
+    );
+    let out = cubecal(&["profile", "export", &file, "--format", "mrcal"], &root);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{err}");
+    assert!(
+        err.starts_with("error: cannot export to mrcal: the kb4 lens (Kannala–Brandt")
+            && err.ends_with("use opencv, ros, colmap or kalibr\n"),
+        "{err}"
     );
 }
 
@@ -779,7 +869,7 @@ fn python_with_tools() -> Option<String> {
     ];
     candidates.into_iter().flatten().find(|py| {
         Command::new(py)
-            .args(["-c", "import cv2, mrcal, camera_calibration_parsers"])
+            .args(["-c", "import cv2, mrcal, camera_calibration_parsers, yaml"])
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .status()
@@ -800,6 +890,11 @@ fn distorted_cameras() -> Vec<(&'static str, Camera)> {
                 DistortionModel::Brown5,
                 &[-0.3, 0.1, 0.0015, -0.0012, -0.01],
             ),
+        ),
+        (
+            "brown5_no_k3",
+            Camera::pinhole([1280, 960], 800.0, 803.5, 641.25, 478.75)
+                .with_distortion(DistortionModel::Brown5, &[-0.3, 0.1, 0.0015, -0.0012, 0.0]),
         ),
         (
             "brown8",
@@ -837,15 +932,53 @@ fn points_covering_the_image(cam: &Camera) -> Vec<Vector3<f64>> {
     pts
 }
 
+/// The Python interpreter with the tools, or `None` after saying why the test is skipped (a failure
+/// under `CUBECAL_REQUIRE_TOOLS=1`).
+fn python_or_skip(test: &str) -> Option<String> {
+    let python = python_with_tools();
+    if python.is_none() {
+        let reason = "python3 with cv2, mrcal, camera_calibration_parsers and yaml not found (run deploy/install-test-tools.sh)";
+        assert!(!tools_required(), "CUBECAL_REQUIRE_TOOLS=1 but {reason}");
+        eprintln!("SKIPPED {test}: {reason}");
+    }
+    python
+}
+
+/// Run `tests/exports/project.py` on `dir` and parse what it prints.
+fn project_with_tools(python: &str, dir: &Path, name: &str) -> serde_json::Value {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/exports/project.py");
+    let out = Command::new(python)
+        .arg(&script)
+        .arg(dir)
+        .output()
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        out.status.success(),
+        "{name}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+/// A tool's pixels, `None` where it could not project the point.
+fn pixels(v: &serde_json::Value, tool: &str) -> Vec<Option<[f64; 2]>> {
+    serde_json::from_value(v[tool].clone()).unwrap_or_else(|e| panic!("{tool}: {e}"))
+}
+
+/// Largest distance between our pixels and a tool's over the points it projected, and how many.
+fn max_distance(ours: &[[f64; 2]], theirs: &[Option<[f64; 2]>]) -> (f64, usize) {
+    assert_eq!(theirs.len(), ours.len());
+    ours.iter()
+        .zip(theirs)
+        .filter_map(|(a, b)| b.map(|b| (a[0] - b[0]).hypot(a[1] - b[1])))
+        .fold((0.0, 0), |(m, n), d| (m.max(d), n + 1))
+}
+
 #[test]
 fn exports_load_in_opencv_ros_and_mrcal_and_project_like_cubecal() {
-    let Some(python) = python_with_tools() else {
-        let reason = "python3 with cv2, mrcal and camera_calibration_parsers not found (run deploy/install-test-tools.sh)";
-        assert!(!tools_required(), "CUBECAL_REQUIRE_TOOLS=1 but {reason}");
-        eprintln!("SKIPPED exports test: {reason}");
+    let Some(python) = python_or_skip("exports test") else {
         return;
     };
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/exports/project.py");
     for (name, cam) in distorted_cameras() {
         let tmp = tempdir();
         let mut p = profile("usb:046d:0825:EXPORT", 0, true);
@@ -884,27 +1017,22 @@ fn exports_load_in_opencv_ros_and_mrcal_and_project_like_cubecal() {
             "model.cameramodel",
             export::mrcal_cameramodel(&p).unwrap_or_else(|e| panic!("{e}")),
         );
-        let out = Command::new(&python)
-            .arg(&script)
-            .arg(tmp.path())
-            .output()
-            .unwrap_or_else(|e| panic!("{e}"));
-        assert!(
-            out.status.success(),
-            "{name}: {}",
-            String::from_utf8_lossy(&out.stderr)
+        // Kalibr's radtan has no k3: the lenses with one are refused (kalibr_refuses_…)
+        let kalibr = export::kalibr_camchain_yaml(&p);
+        assert_eq!(
+            kalibr.is_ok(),
+            matches!(name, "pinhole" | "brown5_no_k3"),
+            "{name}: {kalibr:?}"
         );
-        let v: serde_json::Value =
-            serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{e}"));
-        for tool in ["opencv", "ros", "mrcal"] {
-            let theirs: Vec<[f64; 2]> =
-                serde_json::from_value(v[tool].clone()).unwrap_or_else(|e| panic!("{tool}: {e}"));
-            assert_eq!(theirs.len(), ours.len());
-            let max_err = ours
-                .iter()
-                .zip(&theirs)
-                .map(|(a, b)| (a[0] - b[0]).hypot(a[1] - b[1]))
-                .fold(0.0, f64::max);
+        let mut tools = vec!["opencv", "ros", "mrcal"];
+        if let Ok(text) = kalibr {
+            write("kalibr.yaml", text);
+            tools.push("kalibr");
+        }
+        let v = project_with_tools(&python, tmp.path(), name);
+        for tool in tools {
+            let (max_err, n) = max_distance(&ours, &pixels(&v, tool));
+            assert_eq!(n, ours.len(), "{name} via {tool}: every point projected");
             let max_shift = pts
                 .iter()
                 .zip(&ours)
@@ -923,6 +1051,7 @@ fn exports_load_in_opencv_ros_and_mrcal_and_project_like_cubecal() {
             assert!(max_err < 1e-6, "{name} via {tool}: {max_err} px");
         }
         let loaded = &v["loaded"];
+        assert!(loaded["opencv"]["fisheye_model"].is_null(), "{name}");
         assert_eq!(loaded["opencv"]["size"], serde_json::json!(cam.image_size));
         assert_eq!(loaded["ros"]["size"], serde_json::json!(cam.image_size));
         assert_eq!(loaded["mrcal"]["size"], serde_json::json!(cam.image_size));
@@ -935,9 +1064,271 @@ fn exports_load_in_opencv_ros_and_mrcal_and_project_like_cubecal() {
     }
 }
 
+/// Rays from the axis to 100° off it, at 24 azimuths and depths of 0.3–5 m, whose images cubecal puts
+/// inside the frame: the fisheye's field to where it passes 90° (a point behind the camera's plane).
+fn fisheye_points(cam: &Camera) -> Vec<Vector3<f64>> {
+    let thetas_deg = [
+        0.0, 0.5, 2.0, 5.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 85.0, 88.0, 89.0, 89.9,
+        90.5, 92.0, 95.0, 98.0, 100.0,
+    ];
+    let [w, h] = cam.image_size.map(f64::from);
+    let mut pts = Vec::new();
+    for (i, &t) in thetas_deg.iter().enumerate() {
+        for j in 0..24 {
+            let (th, ph) = (
+                f64::to_radians(t),
+                f64::to_radians(15.0 * j as f64 + 7.0 * i as f64),
+            );
+            let depth = 300.0 + 4700.0 * ((i * 7 + j * 3) % 11) as f64 / 10.0;
+            let p = Vector3::new(th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()) * depth;
+            let uv = cam
+                .project_cam(&p)
+                .unwrap_or_else(|e| panic!("{t}° {ph}: {e}"));
+            if (-0.5..w - 0.5).contains(&uv.x) && (-0.5..h - 0.5).contains(&uv.y) {
+                pts.push(p);
+            }
+            if t == 0.0 {
+                break;
+            }
+        }
+    }
+    pts
+}
+
+/// Angle off the optical axis, degrees.
+fn off_axis_deg(p: &Vector3<f64>) -> f64 {
+    p.x.hypot(p.y).atan2(p.z).to_degrees()
+}
+
+#[test]
+fn kb4_exports_load_in_cv2_fisheye_ros_and_kalibr_and_project_like_cubecal() {
+    let Some(python) = python_or_skip("kb4 exports test") else {
+        return;
+    };
+    let [k1, k2, ..] = kb4_camera().distortion_coefficients()[..] else {
+        panic!("kb4 has 4 coefficients");
+    };
+    let cahvore_exact = kb4_camera().with_distortion(DistortionModel::Kb4, &[k1, k2, 0.0, 0.0]);
+    for (name, cam) in [("kb4", kb4_camera()), ("kb4 k3=k4=0", cahvore_exact)] {
+        let tmp = tempdir();
+        let mut p = profile("usb:2bdf:0280:FISHEYE", 0, true);
+        p.calibration = report(&cam, 0.1);
+        let pts = fisheye_points(&cam);
+        let ours: Vec<[f64; 2]> = pts
+            .iter()
+            .map(|x| {
+                let uv = cam.project_cam(x).unwrap_or_else(|e| panic!("{e}"));
+                [uv.x, uv.y]
+            })
+            .collect();
+        let in_front = pts.iter().filter(|x| x.z > 0.0).count();
+        let widest = pts.iter().map(off_axis_deg).fold(0.0, f64::max);
+        let widest_in_front = pts
+            .iter()
+            .filter(|x| x.z > 0.0)
+            .map(off_axis_deg)
+            .fold(0.0, f64::max);
+        assert!(
+            widest > 99.9 && widest_in_front > 89.8,
+            "{widest} {widest_in_front}"
+        );
+        assert!(
+            pts.len() - in_front >= 40,
+            "points past 90°: {}",
+            pts.len() - in_front
+        );
+        let write = |file: &str, text: String| {
+            std::fs::write(tmp.path().join(file), text).unwrap_or_else(|e| panic!("{e}"))
+        };
+        write(
+            "points.json",
+            serde_json::json!({ "points": pts.iter().map(|x| [x.x, x.y, x.z]).collect::<Vec<_>>() })
+                .to_string(),
+        );
+        for (file, text) in [
+            ("opencv.yaml", export::opencv_yaml(&p)),
+            ("ros.yaml", export::ros_camera_info_yaml(&p)),
+            ("kalibr.yaml", export::kalibr_camchain_yaml(&p)),
+        ] {
+            write(file, text.unwrap_or_else(|e| panic!("{name} {file}: {e}")));
+        }
+        // mrcal: refused (naming the model), unless k3 = k4 = 0 makes CAHVORE an exact equivalent
+        match (name, export::mrcal_cameramodel(&p)) {
+            ("kb4", Err(e)) => {
+                let msg = e.to_string();
+                assert!(
+                    msg.starts_with("cannot export to mrcal: the kb4 lens (Kannala–Brandt"),
+                    "{msg}"
+                );
+                println!("{name} via mrcal: refused: {msg}");
+            }
+            ("kb4 k3=k4=0", Ok(text)) => write("model.cameramodel", text),
+            (_, other) => panic!("{name}: mrcal export {other:?}"),
+        }
+        let v = project_with_tools(&python, tmp.path(), name);
+
+        // cv::fisheye (OpenCV's file and ROS's), and Kalibr's equidistant, in front of the camera
+        for tool in ["opencv", "ros", "kalibr"] {
+            let (max_err, n) = max_distance(&ours, &pixels(&v, tool));
+            println!(
+                "{name} via {tool}: {n} points with z > 0 (up to {widest_in_front:.1}° off the axis), max |cubecal − {tool}| = {max_err:.3e} px"
+            );
+            assert_eq!(n, in_front, "{name} via {tool}: every point with z > 0");
+            assert!(max_err < 1e-6, "{name} via {tool}: {max_err} px");
+        }
+        // past 90°: the file's K and D through cv::fisheye's formula on the angle give our pixels …
+        let (max_err, n) = max_distance(&ours, &pixels(&v, "opencv_theta"));
+        println!(
+            "{name} via cv::fisheye's formula on θ with the loaded K, D: {n} points up to {widest:.1}°, max |Δ| = {max_err:.3e} px"
+        );
+        assert!(n == pts.len() && max_err < 1e-6, "{name}: {max_err} px");
+        // … while cv2.fisheye.projectPoints, which divides by z first, puts a point behind the
+        // camera's plane where the point reflected through the centre belongs
+        let reflected: Vec<[f64; 2]> = pts
+            .iter()
+            .map(|x| match cam.project_cam(&-x) {
+                Ok(uv) if x.z <= 0.0 => [uv.x, uv.y],
+                _ => [f64::NAN, f64::NAN],
+            })
+            .collect();
+        let (max_err, n) = max_distance(&reflected, &pixels(&v, "opencv_behind"));
+        println!(
+            "{name}: cv2.fisheye.projectPoints of the {n} points past 90° = cubecal's projection of −X within {max_err:.3e} px (their reflection)"
+        );
+        assert!(n == pts.len() - in_front && max_err < 1e-6, "{max_err}");
+        if name == "kb4 k3=k4=0" {
+            let (max_err, n) = max_distance(&ours, &pixels(&v, "mrcal"));
+            println!(
+                "{name} via mrcal (LENSMODEL_CAHVORE_linearity=0.00): {n} points up to {widest:.1}°, max |Δ| = {max_err:.3e} px"
+            );
+            assert!(
+                n == pts.len() && max_err < 1e-6,
+                "{name} via mrcal: {max_err} px"
+            );
+            assert_eq!(
+                v["loaded"]["mrcal"]["lensmodel"],
+                "LENSMODEL_CAHVORE_linearity=0.00"
+            );
+        } else {
+            assert!(v["mrcal"].is_null());
+        }
+
+        // what each tool read: exactly our numbers
+        let coeffs = cam.distortion_coefficients();
+        let k = serde_json::json!([
+            [cam.fx(), 0.0, cam.cx()],
+            [0.0, cam.fy(), cam.cy()],
+            [0.0, 0.0, 1.0]
+        ]);
+        let loaded = &v["loaded"];
+        assert_eq!(loaded["opencv"]["fisheye_model"], 1);
+        assert_eq!(loaded["opencv"]["K"], k);
+        assert_eq!(loaded["opencv"]["D"], serde_json::json!(coeffs));
+        assert_eq!(loaded["opencv"]["size"], serde_json::json!(cam.image_size));
+        assert_eq!(loaded["ros"]["model"], "equidistant");
+        assert_eq!(loaded["ros"]["K"], k);
+        assert_eq!(loaded["ros"]["D"], serde_json::json!(coeffs));
+        assert_eq!(loaded["ros"]["size"], serde_json::json!(cam.image_size));
+        assert_eq!(
+            loaded["ros"]["P"],
+            serde_json::json!([
+                cam.fx(),
+                0.0,
+                cam.cx(),
+                0.0,
+                0.0,
+                cam.fy(),
+                cam.cy(),
+                0.0,
+                0.0,
+                0.0,
+                1.0,
+                0.0
+            ])
+        );
+        let cam0 = &loaded["kalibr"]["cam0"];
+        assert_eq!(
+            loaded["kalibr"]
+                .as_object()
+                .map(|o| o.keys().cloned().collect::<Vec<_>>()),
+            Some(vec!["cam0".to_string()])
+        );
+        assert_eq!(cam0["camera_model"], "pinhole");
+        assert_eq!(
+            cam0["intrinsics"],
+            serde_json::json!([cam.fx(), cam.fy(), cam.cx(), cam.cy()])
+        );
+        assert_eq!(cam0["distortion_model"], "equidistant");
+        assert_eq!(cam0["distortion_coeffs"], serde_json::json!(coeffs));
+        assert_eq!(cam0["resolution"], serde_json::json!(cam.image_size));
+        assert!(cam0.get("T_cam_imu").is_none(), "{cam0}");
+        assert_eq!(cam0["rostopic"], "/cam0/image_raw");
+    }
+}
+
+#[test]
+fn mrcal_and_kalibr_refuse_what_they_cannot_express_exactly() {
+    let export_of = |cam: &Camera, f: fn(&Profile) -> Result<String, export::ExportError>| {
+        let mut p = profile("cam", 0, true);
+        p.calibration = report(cam, 0.1);
+        f(&p)
+    };
+    let refused = |r: Result<String, export::ExportError>| match r {
+        Err(e @ export::ExportError::Unsupported { .. }) => e.to_string(),
+        other => panic!("expected a refusal, got {other:?}"),
+    };
+    // mrcal has no lens model with kb4's θ⁷, θ⁹ terms
+    let msg = refused(export_of(&kb4_camera(), export::mrcal_cameramodel));
+    assert!(
+        msg.contains("kb4") && msg.contains("Kannala–Brandt") && msg.contains("k3 = 5.20e-4"),
+        "{msg}"
+    );
+    // Kalibr's radtan is k1, k2, p1, p2: a k3 (or brown8's rational terms) is refused, naming them
+    let cams = distorted_cameras();
+    let by_name = |n: &str| {
+        cams.iter()
+            .find(|(name, _)| *name == n)
+            .map(|(_, c)| c.clone())
+            .unwrap_or_else(|| panic!("{n}"))
+    };
+    let msg = refused(export_of(&by_name("brown5"), export::kalibr_camchain_yaml));
+    assert!(
+        msg.starts_with(
+            "cannot export to Kalibr: the brown5 lens has k3 = -1.00e-2; Kalibr's radtan"
+        ),
+        "{msg}"
+    );
+    let msg = refused(export_of(&by_name("brown8"), export::kalibr_camchain_yaml));
+    assert!(
+        msg.contains("the brown8 lens has k3 = 2.00e-3, k4 = 6.50e-1, k5 = 1.00e-1, k6 = 4.00e-3"),
+        "{msg}"
+    );
+    // … and what it can express exactly is written: brown8 with k3..k6 = 0 is radtan, pinhole none
+    let radtan8 = by_name("brown8").with_distortion(
+        DistortionModel::Brown8,
+        &[0.4, 0.05, 0.0008, -0.0011, 0.0, 0.0, 0.0, 0.0],
+    );
+    let text = export_of(&radtan8, export::kalibr_camchain_yaml).unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        text.contains(
+            "  distortion_model: radtan\n  distortion_coeffs: [0.4, 0.05, 0.0008, -0.0011]\n"
+        ),
+        "{text}"
+    );
+    let text = export_of(&by_name("pinhole"), export::kalibr_camchain_yaml)
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        text.contains("  intrinsics: [500.0, 500.0, 319.5, 239.5]\n  distortion_model: none\n  distortion_coeffs: []\n  resolution: [640, 480]\n"),
+        "{text}"
+    );
+}
+
 #[test]
 fn colmap_line_shifts_the_principal_point_and_picks_the_model() {
-    for (name, cam) in distorted_cameras() {
+    let cameras = distorted_cameras()
+        .into_iter()
+        .chain([("kb4", kb4_camera())]);
+    for (name, cam) in cameras {
         let mut p = profile("cam", 0, true);
         p.calibration = report(&cam, 0.1);
         let text = export::colmap_cameras_txt(&p).unwrap_or_else(|e| panic!("{e}"));
@@ -948,7 +1339,9 @@ fn colmap_line_shifts_the_principal_point_and_picks_the_model() {
         let f: Vec<&str> = line.split(' ').collect();
         let model = match name {
             "brown5" => "FULL_OPENCV", // k3 ≠ 0 does not fit COLMAP's OPENCV
+            "brown5_no_k3" => "OPENCV",
             "brown8" => "FULL_OPENCV",
+            "kb4" => "OPENCV_FISHEYE", // fx, fy, cx, cy, k1, k2, k3, k4
             _ => "PINHOLE",
         };
         assert_eq!(
@@ -968,8 +1361,16 @@ fn colmap_line_shifts_the_principal_point_and_picks_the_model() {
             nums[..4],
             [cam.fx(), cam.fy(), cam.cx() + 0.5, cam.cy() + 0.5]
         );
-        let coeffs = cam.distortion_coefficients();
-        assert_eq!(nums[4..4 + coeffs.len()], coeffs[..]);
+        let mut coeffs = cam.distortion_coefficients();
+        coeffs.resize(
+            match model {
+                "PINHOLE" => 0,
+                "OPENCV" | "OPENCV_FISHEYE" => 4,
+                _ => 8,
+            },
+            0.0,
+        );
+        assert_eq!(nums[4..], coeffs[..], "{name}: {line}");
     }
 }
 
@@ -1119,6 +1520,15 @@ fn cli_show_export_diff_rollback_and_their_exit_codes() {
     );
     let out = cubecal(&["profile", "export", id, "--format", "png"], &root);
     assert_eq!(out.status.code(), Some(2), "unknown format: usage");
+    // a lens a format cannot express is refused whole (exit 3), saying what to do
+    let out = cubecal(&["profile", "export", id, "--format", "kalibr"], &root);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{err}");
+    assert!(
+        err.starts_with("error: cannot export to Kalibr: the brown5 lens has k3 = -1.00e-2;")
+            && err.ends_with("(for Kalibr: --model brown5 --fix k3)\n"),
+        "{err}"
+    );
 
     let history = store.history(id).unwrap_or_else(|e| panic!("{e}"));
     let old = history[0].to_string_lossy().into_owned();

@@ -242,9 +242,17 @@ fn history_keeps_provenance_a_failed_run_changes_nothing_and_a_run_is_stored_onc
     for format in Format::ALL {
         let name = format.name();
         let out = on_store(&["get", id, "--format", name], &url, &pw);
-        assert!(out.status.success(), "{name}: {}", text(&out.stderr));
-        let expected = format.render(&current).unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(text(&out.stdout), expected, "{name}");
+        match format.render(&current) {
+            Ok(expected) => {
+                assert!(out.status.success(), "{name}: {}", text(&out.stderr));
+                assert_eq!(text(&out.stdout), expected, "{name}");
+            }
+            // the sample's brown5 has k3 ≠ 0, which Kalibr's radtan cannot hold: refused alike
+            Err(e) => {
+                assert_eq!(out.status.code(), Some(3), "{name}: {}", text(&out.stderr));
+                assert_eq!(text(&out.stderr), format!("error: {e}\n"), "{name}");
+            }
+        }
     }
     let out = on_store(&["list"], &url, &pw);
     assert!(out.status.success(), "{}", text(&out.stderr));

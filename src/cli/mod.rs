@@ -97,17 +97,17 @@ pub fn fmt_value(x: f64) -> String {
     }
 }
 
-/// Distortion coefficients of `model` named in OpenCV's order, each to six significant decimals,
-/// with σ where the calibration has one: `k1 -0.281234 ± 0.001234, k2 …`.
+/// Distortion coefficients named as their model names them (OpenCV's order for Brown–Conrady,
+/// `k1..k4` for kb4), each to six significant decimals, with σ where the calibration has one:
+/// `k1 -0.281234 ± 0.001234, k2 …`.
 pub fn fmt_distortion(
-    model: &str,
-    coefficients: &[f64],
+    distortion: &cubecal::calib::report::DistortionReport,
     std_dev: &std::collections::BTreeMap<String, f64>,
 ) -> String {
-    let names = cubecal::camera::DistortionModel::from_name_or_brown(model).coefficient_names();
-    coefficients
+    distortion
+        .coefficients
         .iter()
-        .zip(names.iter().copied())
+        .zip(cubecal::profile::coefficient_names(&distortion.model))
         .map(|(v, name)| match std_dev.get(name) {
             Some(sd) => format!("{name} {v:.6} ± {sd:.6}"),
             None => format!("{name} {v:.6} (fixed)"),

@@ -57,7 +57,8 @@ pub enum ProfileCommand {
     Export {
         /// Camera identity or folder name, or a profile file.
         device: String,
-        /// opencv (FileStorage YAML), ros (camera_info YAML), mrcal (.cameramodel), colmap (cameras.txt).
+        /// opencv (FileStorage YAML), ros (camera_info YAML), mrcal (.cameramodel), colmap
+        /// (cameras.txt), kalibr (camchain YAML). A lens the format cannot express exactly is refused.
         #[arg(long)]
         format: Format,
         /// Write to this file instead of standard output.
@@ -311,7 +312,7 @@ fn show(store: &StoreArg, device: &str, out: Output) -> anyhow::Result<u8> {
     println!(
         "distortion: {} {}",
         display_identity(&c.distortion.model),
-        super::fmt_distortion(&c.distortion.model, &c.distortion.coefficients, &c.std_dev)
+        super::fmt_distortion(&c.distortion, &c.std_dev)
     );
     for (name, sd) in &c.std_dev {
         println!("  σ {:<5} {sd:.6}", display_identity(name));

@@ -230,7 +230,7 @@ fn print_human(
     if r.std_dev.contains_key("skew") {
         outln!("  skew = {:.4}{}", k[0][1], sd("skew"))?;
     }
-    let names = DistortionModel::from_name_or_brown(&r.distortion.model).coefficient_names();
+    let names = cubecal::profile::coefficient_names(&r.distortion.model);
     for (name, v) in names.iter().zip(&r.distortion.coefficients) {
         let s = r
             .std_dev

@@ -441,6 +441,16 @@ pub fn is_rfc3339_utc(s: &str) -> bool {
 /// Distortion coefficient names in OpenCV order.
 const DISTORTION_NAMES: [&str; 8] = ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"];
 
+/// The names of a stored model's coefficients, in the order the document lists them: the model's own
+/// ([`crate::camera::DistortionModel::coefficient_names`]: kb4's are `k1, k2, k3, k4`, the names its σ
+/// is stored under), or OpenCV's order for a model this cubecal does not know.
+pub fn coefficient_names(model: &str) -> Vec<&'static str> {
+    match model.parse::<crate::camera::DistortionModel>() {
+        Ok(m) => m.coefficient_names().collect(),
+        Err(_) => DISTORTION_NAMES.to_vec(),
+    }
+}
+
 /// The intrinsic values of a calibration by name (`fx, fy, cx, cy, skew` and the model's coefficients).
 pub fn intrinsic_values(c: &CalibrationReport) -> BTreeMap<&'static str, f64> {
     let k = &c.camera_matrix;
@@ -451,7 +461,10 @@ pub fn intrinsic_values(c: &CalibrationReport) -> BTreeMap<&'static str, f64> {
         ("cy", k[1][2]),
         ("skew", k[0][1]),
     ]);
-    for (name, v) in DISTORTION_NAMES.iter().zip(&c.distortion.coefficients) {
+    for (name, v) in coefficient_names(&c.distortion.model)
+        .into_iter()
+        .zip(&c.distortion.coefficients)
+    {
         out.insert(name, *v);
     }
     out

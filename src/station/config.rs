@@ -300,7 +300,7 @@ impl SyntheticSection {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SolveSection {
-    /// `pinhole`, `brown5` or `brown8`.
+    /// `pinhole`, `brown5`, `brown8` or `kb4`.
     pub model: String,
     /// Parameters held fixed: `aspect`, `principal-point`, `tangential`, `k3`.
     pub fix: Vec<String>,
