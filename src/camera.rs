@@ -370,6 +370,7 @@ impl Camera {
 
     /// The distorted point, its point Jacobian, and the radial terms the coefficients' Jacobian
     /// is built from (shared by both `distort_with_*` functions).
+    #[inline]
     fn distortion_terms(&self, x: f64, y: f64) -> DistortionTerms {
         let p = &self.params;
         let (k1, k2, p1, p2, k3) = (p[idx::K1], p[idx::K2], p[idx::P1], p[idx::P2], p[idx::K3]);
@@ -574,7 +575,10 @@ impl Camera {
         };
         let mut residual = f64::INFINITY;
         for it in 0..UNDISTORT_MAX_ITERATIONS {
-            let (d, j) = self.distort_with_point_jacobian(p.x, p.y);
+            // Brown–Conrady here (the fisheye returned above): its terms directly, inlined into
+            // this loop, which the renderer runs for every sample.
+            let t = self.distortion_terms(p.x, p.y);
+            let (d, j) = (t.distorted, t.j_xy);
             let r = d - target;
             residual = r.norm();
             if residual <= UNDISTORT_TOLERANCE * (1.0 + target.norm()) {
