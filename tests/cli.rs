@@ -158,3 +158,63 @@ fn usage_errors_exit_2() {
     let out = cubecal(&["--help"]);
     assert_eq!(out.status.code(), Some(0));
 }
+
+/// `render --model kb4` renders through the fisheye (its ground truth names the model and the four
+/// coefficients); a Brown–Conrady render with a k4, or a fisheye with tangential terms, is refused.
+#[test]
+fn render_takes_the_fisheye_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("fe");
+    let rig = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/fixtures/rigs/cube_outside.toml"
+    );
+    let o = cubecal(&[
+        "render",
+        rig,
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "320",
+        "--height",
+        "240",
+        "--fx",
+        "90",
+        "--fy",
+        "90",
+        "--model",
+        "kb4",
+        "--k1",
+        "0.02",
+        "--k4",
+        "-0.0001",
+    ]);
+    assert_eq!(
+        o.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let truth: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("frame_000.json")).unwrap()).unwrap();
+    let cam = &truth["camera"];
+    assert_eq!(cam["distortion_model"], "kb4", "{cam}");
+    assert_eq!(
+        cam["distortion_coefficients"],
+        serde_json::json!([0.02, 0.0, 0.0, -0.0001])
+    );
+    let o = cubecal(&["render", rig, "--out", out.to_str().unwrap(), "--k4", "0.1"]);
+    assert_eq!(o.status.code(), Some(3));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("k4"));
+    let o = cubecal(&[
+        "render",
+        rig,
+        "--out",
+        out.to_str().unwrap(),
+        "--model",
+        "kb4",
+        "--p1",
+        "0.001",
+    ]);
+    assert_eq!(o.status.code(), Some(3));
+}

@@ -63,6 +63,10 @@ pub struct CalibrateArgs {
     /// boards sit slightly off the rig file.
     #[arg(long)]
     pub refine_rig: bool,
+    /// Lens model (solve.model): pinhole, brown5, brown8, kb4 (the fisheye: OpenCV's cv::fisheye),
+    /// or auto (Brown–Conrady and the fisheye both solved; the held-out views decide).
+    #[arg(long, value_parser = ["pinhole", "brown5", "brown8", "kb4", "auto"])]
+    pub model: Option<String>,
     #[command(flatten)]
     pub http: super::live::HttpArgs,
     /// Set any config key: --set qa.max_rms_px=0.2 (repeatable).
@@ -90,6 +94,7 @@ impl From<&CalibrateArgs> for RunRequest {
             http_token_file: a.http.http_token_file.clone(),
             set: (a.set.iter().cloned())
                 .chain(a.refine_rig.then(|| "solve.refine_rig=true".to_string()))
+                .chain(a.model.as_ref().map(|m| format!("solve.model={m}")))
                 .collect(),
         }
     }

@@ -88,7 +88,12 @@ pub struct RenderArgs {
     /// Principal point y, px (default: image centre, (height − 1)/2).
     #[arg(long, allow_negative_numbers = true)]
     pub cy: Option<f64>,
-    /// Radial distortion k1 (OpenCV Brown–Conrady).
+    /// Lens model: brown5 (OpenCV's k1, k2, p1, p2, k3) or kb4 (the fisheye, cv::fisheye's k1..k4
+    /// of θ_d = θ(1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸); e.g. `--model kb4 --fx 350 --fy 350 --k1 0.02`
+    /// sees 210° across 1280 px).
+    #[arg(long, default_value = "brown5", value_parser = ["brown5", "kb4"])]
+    pub model: String,
+    /// Radial distortion k1 (OpenCV Brown–Conrady; with --model kb4 the fisheye's k1).
     #[arg(long, default_value_t = -0.1, allow_negative_numbers = true)]
     pub k1: f64,
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
@@ -99,6 +104,9 @@ pub struct RenderArgs {
     pub p2: f64,
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     pub k3: f64,
+    /// The fisheye's k4 (--model kb4 only).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    pub k4: f64,
     /// Gaussian blur σ, px.
     #[arg(long, allow_negative_numbers = true, default_value_t = 0.0, value_parser = non_negative)]
     pub blur: f64,
@@ -186,6 +194,26 @@ pub fn run(args: RenderArgs, out: Output) -> anyhow::Result<u8> {
         DistortionModel::Brown5,
         &[args.k1, args.k2, args.p1, args.p2, args.k3],
     );
+    let camera = if args.model == "kb4" {
+        if args.p1 != 0.0 || args.p2 != 0.0 {
+            return Err(SyntheticError::Setting {
+                name: "p1, p2",
+                value: format!("{}, {}", args.p1, args.p2),
+                expected: "0 with --model kb4 (tangential terms are Brown–Conrady's)",
+            }
+            .into());
+        }
+        camera.with_distortion(DistortionModel::Kb4, &[args.k1, args.k2, args.k3, args.k4])
+    } else if args.k4 != 0.0 {
+        return Err(SyntheticError::Setting {
+            name: "k4",
+            value: args.k4.to_string(),
+            expected: "0 with --model brown5 (k4 is the fisheye's: --model kb4)",
+        }
+        .into());
+    } else {
+        camera
+    };
     camera.validate().map_err(SyntheticError::Camera)?;
     let settings = RenderSettings {
         supersample: args.supersample,

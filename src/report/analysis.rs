@@ -291,9 +291,27 @@ pub fn cell_centre(w: f64, h: f64, nx: usize, ny: usize, i: usize, j: usize) -> 
 }
 
 /// How far the lens moves each pixel: at an observed (distorted) pixel, the distance in pixels to
-/// where an ideal pinhole camera with the same `K` would have imaged the same ray. NaN where the
-/// undistortion does not converge (far outside the calibrated field).
+/// where an ideal pinhole camera with the same `K` would have imaged the same ray — for a fisheye
+/// ([`DistortionModel::Kb4`]) an ideal equidistant one (`r = f·θ`, all k zero: its k measure the
+/// departure from that, and a pinhole's image of 90° is at infinity). NaN where the undistortion
+/// does not converge (far outside the calibrated field).
 pub fn displacement_field(cam: &Camera, nx: usize, ny: usize) -> Field {
+    if cam.model == DistortionModel::Kb4 {
+        return Field::sample(cam.image_size, nx, ny, |u, v| match cam.unproject(u, v) {
+            Ok(ray) => {
+                let theta = ray.xy().norm().atan2(ray.z);
+                let yd = (v - cam.cy()) / cam.fy();
+                let xd = (u - cam.cx() - cam.skew() * yd) / cam.fx();
+                let rd = xd.hypot(yd);
+                if rd == 0.0 {
+                    return 0.0;
+                }
+                let ideal = Vector2::new(xd, yd) * (theta / rd);
+                (cam.to_pixel(&ideal) - Vector2::new(u, v)).norm()
+            }
+            Err(_) => f64::NAN,
+        });
+    }
     Field::sample(cam.image_size, nx, ny, |u, v| {
         let yd = (v - cam.cy()) / cam.fy();
         let xd = (u - cam.cx() - cam.skew() * yd) / cam.fx();
@@ -488,6 +506,34 @@ mod tests {
         let s = projection_sigma(&cam, &cov, 320.0 + 250.0, 240.0, 500.0);
         assert!((s - 0.5).abs() < 1e-9, "{s}");
         assert!(projection_sigma(&cam, &cov, 320.0, 240.0, 500.0) < 1e-9);
+    }
+
+    #[test]
+    fn a_fisheye_is_measured_from_the_equidistant_image() {
+        // θ_d = θ(1 + k1 θ²): the lens moves a pixel by f·(θ_d − θ) = f·k1·θ³ radially, θ from θ_d.
+        let eq = Camera::pinhole([1280, 960], 350.0, 350.0, 639.5, 479.5)
+            .with_distortion(DistortionModel::Kb4, &[]);
+        let cam = eq.clone().with_distortion(DistortionModel::Kb4, &[0.03]);
+        assert!(
+            displacement_field(&eq, 8, 6)
+                .values
+                .iter()
+                .all(|v| v.abs() < 1e-9)
+        );
+        let f = displacement_field(&cam, 8, 6);
+        for j in 0..6 {
+            for i in 0..8 {
+                let (u, v) = cell_centre(1280.0, 960.0, 8, 6, i, j);
+                let td = (u - 639.5).hypot(v - 479.5) / 350.0;
+                let mut t = td;
+                for _ in 0..200 {
+                    t = td / (1.0 + 0.03 * t * t);
+                }
+                let want = 350.0 * (td - t);
+                let got = f.values[j * 8 + i];
+                assert!((got - want).abs() < 1e-6, "{got} vs {want}");
+            }
+        }
     }
 
     #[test]

@@ -418,8 +418,13 @@ pub fn lens_plots(
         &HeatmapFigure {
             name: "distortion",
             caption: format!(
-                "Lens distortion ({}): displacement from the ideal pinhole image",
-                cal.distortion.model
+                "Lens distortion ({}): displacement from the ideal {} image",
+                cal.distortion.model,
+                if cam.model == crate::camera::DistortionModel::Kb4 {
+                    "equidistant (r = f·θ)"
+                } else {
+                    "pinhole"
+                }
             ),
             unit: "px".into(),
             image_size,
@@ -427,7 +432,8 @@ pub fn lens_plots(
             lines: analysis::distorted_grid(cam, 10),
         },
         "Colour bands: how far the lens moves each pixel from where an ideal pinhole camera with \
-         the same K would image it. Black: a straight grid of the ideal image as this lens draws it."
+         the same K would image it (a fisheye: an ideal equidistant one). Black: a straight grid of \
+         the pinhole image as this lens draws it."
             .to_string(),
     )?];
     let mut notes = Vec::new();
