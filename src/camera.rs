@@ -808,20 +808,23 @@ mod tests {
     #[test]
     fn intrinsic_jacobian_matches_central_differences() {
         let cam = test_camera();
-        let p = Vector3::new(0.31, -0.22, 1.4);
-        let (_, j_int, j_pt) = cam.project_cam_with_jacobians(&p).unwrap();
-        for k in 0..N_INTRINSIC {
+        assert_jacobians_match(&cam, &Vector3::new(0.31, -0.22, 1.4), 0..N_INTRINSIC);
+    }
+
+    /// `project_cam_with_jacobians` at `p` against central differences: `∂/∂params[k]` for each `k`
+    /// of `params`, and `∂/∂X`.
+    fn assert_jacobians_match(cam: &Camera, p: &Vector3<f64>, params: impl Iterator<Item = usize>) {
+        let (_, j_int, j_pt) = cam.project_cam_with_jacobians(p).unwrap();
+        for k in params {
             let h = 1e-6 * (1.0 + cam.params[k].abs());
-            let mut cp = cam.clone();
+            let (mut cp, mut cm) = (cam.clone(), cam.clone());
             cp.params[k] += h;
-            let mut cm = cam.clone();
             cm.params[k] -= h;
-            let num = (cp.project_cam(&p).unwrap() - cm.project_cam(&p).unwrap()) / (2.0 * h);
+            let num = (cp.project_cam(p).unwrap() - cm.project_cam(p).unwrap()) / (2.0 * h);
             for r in 0..2 {
-                let err = (num[r] - j_int[(r, k)]).abs();
                 assert!(
-                    err < 1e-5 * (1.0 + num[r].abs()),
-                    "param {} row {r}: analytic {} numeric {}",
+                    (num[r] - j_int[(r, k)]).abs() < 1e-5 * (1.0 + num[r].abs()),
+                    "X {p:?} {} row {r}: analytic {} numeric {}",
                     PARAM_NAMES[k],
                     j_int[(r, k)],
                     num[r]
@@ -834,7 +837,12 @@ mod tests {
             let num =
                 (cam.project_cam(&(p + dp)).unwrap() - cam.project_cam(&(p - dp)).unwrap()) / 2e-6;
             for r in 0..2 {
-                assert!((num[r] - j_pt[(r, k)]).abs() < 1e-4 * (1.0 + num[r].abs()));
+                assert!(
+                    (num[r] - j_pt[(r, k)]).abs() < 1e-4 * (1.0 + num[r].abs()),
+                    "X {p:?} X{k} row {r}: analytic {} numeric {}",
+                    j_pt[(r, k)],
+                    num[r]
+                );
             }
         }
     }
@@ -962,38 +970,8 @@ mod tests {
             (110.0, -0.4),
         ] {
             let p = at_angle(f64::to_radians(theta_deg), phi, 1.7);
-            let (_, j_int, j_pt) = cam.project_cam_with_jacobians(&p).unwrap();
-            for k in cam.model.coefficient_slots().iter().copied().chain(0..5) {
-                let h = 1e-6 * (1.0 + cam.params[k].abs());
-                let (mut cp, mut cm) = (cam.clone(), cam.clone());
-                cp.params[k] += h;
-                cm.params[k] -= h;
-                let num = (cp.project_cam(&p).unwrap() - cm.project_cam(&p).unwrap()) / (2.0 * h);
-                for r in 0..2 {
-                    assert!(
-                        (num[r] - j_int[(r, k)]).abs() < 1e-5 * (1.0 + num[r].abs()),
-                        "θ {theta_deg}° {}: analytic {} numeric {}",
-                        PARAM_NAMES[k],
-                        j_int[(r, k)],
-                        num[r]
-                    );
-                }
-            }
-            for k in 0..3 {
-                let mut dp = Vector3::zeros();
-                dp[k] = 1e-6;
-                let num = (cam.project_cam(&(p + dp)).unwrap()
-                    - cam.project_cam(&(p - dp)).unwrap())
-                    / 2e-6;
-                for r in 0..2 {
-                    assert!(
-                        (num[r] - j_pt[(r, k)]).abs() < 1e-4 * (1.0 + num[r].abs()),
-                        "θ {theta_deg}° X{k}: analytic {} numeric {}",
-                        j_pt[(r, k)],
-                        num[r]
-                    );
-                }
-            }
+            let slots = cam.model.coefficient_slots().to_vec();
+            assert_jacobians_match(&cam, &p, slots.into_iter().chain(0..5));
             // The normalised-plane form (Z > 0) agrees with the 3D form, Jacobians included.
             if p.z > 0.0 {
                 let (x, y) = (p.x / p.z, p.y / p.z);

@@ -974,6 +974,16 @@ fn max_distance(ours: &[[f64; 2]], theirs: &[Option<[f64; 2]>]) -> (f64, usize) 
         .fold((0.0, 0), |(m, n), d| (m.max(d), n + 1))
 }
 
+/// `cam`'s own projection of every point, as the peers' scripts print theirs.
+fn project_all(cam: &Camera, pts: &[Vector3<f64>]) -> Vec<[f64; 2]> {
+    pts.iter()
+        .map(|x| {
+            let uv = cam.project_cam(x).unwrap_or_else(|e| panic!("{e}"));
+            [uv.x, uv.y]
+        })
+        .collect()
+}
+
 #[test]
 fn exports_load_in_opencv_ros_and_mrcal_and_project_like_cubecal() {
     let Some(python) = python_or_skip("exports test") else {
@@ -984,13 +994,7 @@ fn exports_load_in_opencv_ros_and_mrcal_and_project_like_cubecal() {
         let mut p = profile("usb:046d:0825:EXPORT", 0, true);
         p.calibration = report(&cam, 0.1);
         let pts = points_covering_the_image(&cam);
-        let ours: Vec<[f64; 2]> = pts
-            .iter()
-            .map(|x| {
-                let uv = cam.project_cam(x).unwrap_or_else(|e| panic!("{e}"));
-                [uv.x, uv.y]
-            })
-            .collect();
+        let ours = project_all(&cam, &pts);
         // the points reach the image corners, and the lens bends them there
         let corner = ours[0];
         assert!(
@@ -1114,13 +1118,7 @@ fn kb4_exports_load_in_cv2_fisheye_ros_and_kalibr_and_project_like_cubecal() {
         let mut p = profile("usb:2bdf:0280:FISHEYE", 0, true);
         p.calibration = report(&cam, 0.1);
         let pts = fisheye_points(&cam);
-        let ours: Vec<[f64; 2]> = pts
-            .iter()
-            .map(|x| {
-                let uv = cam.project_cam(x).unwrap_or_else(|e| panic!("{e}"));
-                [uv.x, uv.y]
-            })
-            .collect();
+        let ours = project_all(&cam, &pts);
         let in_front = pts.iter().filter(|x| x.z > 0.0).count();
         let widest = pts.iter().map(off_axis_deg).fold(0.0, f64::max);
         let widest_in_front = pts

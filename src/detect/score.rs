@@ -144,36 +144,51 @@ pub fn periphery_poses(rig: &Rig, camera: &Camera, n: usize, seed: u64) -> Vec<P
         .into_iter()
         .enumerate()
         .map(|(k, p)| {
-            let depth = p.transform(&centre).z;
-            let back = Pose::from_axis_angle(
-                Vector3::zeros(),
-                Vector3::new(0.0, 0.0, (PERIPHERY_DISTANCE - 1.0) * depth),
-            );
-            let p = back.compose(&p);
             let (sx, sy) = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)][k % 4];
             let target = Vector2::new(
                 camera.cx() + sx * PERIPHERY_OFFSET * w / 2.0,
                 camera.cy() + sy * PERIPHERY_OFFSET * h / 2.0,
             );
-            let from = p.transform(&centre).normalize();
-            let Ok(to) = camera.unproject(target.x, target.y) else {
-                return p;
-            };
-            let axis = from.cross(&to);
-            let angle = axis.norm().atan2(from.dot(&to));
-            let turn = match axis.try_normalize(1e-12) {
-                Some(a) => Pose::from_axis_angle(a * angle, Vector3::zeros()),
-                None => Pose::identity(),
-            };
-            turn.compose(&p)
+            back_and_turned(
+                p,
+                &centre,
+                PERIPHERY_DISTANCE,
+                camera.unproject(target.x, target.y).ok(),
+            )
         })
         .collect()
 }
 
+/// `p` moved back along its optical axis to `distance` × the depth of `centre`, then turned about the
+/// camera centre so that `centre` is seen along the ray `to` (only moved back without one).
+fn back_and_turned(
+    p: Pose,
+    centre: &Vector3<f64>,
+    distance: f64,
+    to: Option<Vector3<f64>>,
+) -> Pose {
+    let depth = p.transform(centre).z;
+    let back = Pose::from_axis_angle(
+        Vector3::zeros(),
+        Vector3::new(0.0, 0.0, (distance - 1.0) * depth),
+    );
+    let p = back.compose(&p);
+    let Some(to) = to else {
+        return p;
+    };
+    let from = p.transform(centre).normalize();
+    let axis = from.cross(&to);
+    let angle = axis.norm().atan2(from.dot(&to));
+    let turn = match axis.try_normalize(1e-12) {
+        Some(a) => Pose::from_axis_angle(a * angle, Vector3::zeros()),
+        None => Pose::identity(),
+    };
+    turn.compose(&p)
+}
+
 /// `n` seeded views for a fisheye: [`random_poses`] moved back to [`FISHEYE_DISTANCE`] × their
-/// distance, then the camera turned about its centre so that
-/// the rig's centre is seen at a seeded angle of 0 to [`FISHEYE_MAX_OFF_AXIS_DEG`] off the optical
-/// axis, in a seeded direction.
+/// distance, then the camera turned about its centre so that the rig's centre is seen at a seeded
+/// angle of 0 to [`FISHEYE_MAX_OFF_AXIS_DEG`] off the optical axis, in a seeded direction.
 pub fn fisheye_poses(rig: &Rig, camera: &Camera, n: usize, seed: u64) -> Vec<Pose> {
     let centre = rig.centre();
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_f15e);
@@ -182,25 +197,12 @@ pub fn fisheye_poses(rig: &Rig, camera: &Camera, n: usize, seed: u64) -> Vec<Pos
         .map(|p| {
             let off = rng.random_range(0.0..FISHEYE_MAX_OFF_AXIS_DEG).to_radians();
             let azimuth = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
-            let depth = p.transform(&centre).z;
-            let back = Pose::from_axis_angle(
-                Vector3::zeros(),
-                Vector3::new(0.0, 0.0, (FISHEYE_DISTANCE - 1.0) * depth),
-            );
-            let p = back.compose(&p);
-            let from = p.transform(&centre).normalize();
             let to = Vector3::new(
                 off.sin() * azimuth.cos(),
                 off.sin() * azimuth.sin(),
                 off.cos(),
             );
-            let axis = from.cross(&to);
-            let angle = axis.norm().atan2(from.dot(&to));
-            let turn = match axis.try_normalize(1e-12) {
-                Some(a) => Pose::from_axis_angle(a * angle, Vector3::zeros()),
-                None => Pose::identity(),
-            };
-            turn.compose(&p)
+            back_and_turned(p, &centre, FISHEYE_DISTANCE, Some(to))
         })
         .collect()
 }
