@@ -436,7 +436,7 @@ fn model_auto_picks_the_lens_by_the_held_out_view() {
         let tmp = tempfile::tempdir().unwrap();
         let photos = tmp.path().join("photos");
         std::fs::create_dir(&photos).unwrap();
-        render_photos(set, &rig, 10, &photos);
+        render_photos(set, &rig, 8, &photos);
         let run = tmp.path().join("run");
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_cubecal"))
             .args([

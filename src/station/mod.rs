@@ -1551,12 +1551,20 @@ fn solve_choosing_model(
         .unwrap_or(0);
     let mut parts: Vec<String> = (scored.iter())
         .map(|(m, ss, n, s)| {
-            format!(
-                "{} {:.4} px held out (fitted views {:.4} px)",
-                m.name(),
-                (ss / (*n).max(1) as f64).sqrt(),
-                s.0.rms_px
-            )
+            if ss.is_finite() {
+                format!(
+                    "{} {:.4} px held out (fitted views {:.4} px)",
+                    m.name(),
+                    (ss / (*n).max(1) as f64).sqrt(),
+                    s.0.rms_px
+                )
+            } else {
+                format!(
+                    "{}: a held-out view's pose cannot be solved in its camera (fitted views {:.4} px)",
+                    m.name(),
+                    s.0.rms_px
+                )
+            }
         })
         .collect();
     if let Some((m, e)) = &last_error {
@@ -1569,10 +1577,15 @@ fn solve_choosing_model(
             ),
             None => "the only one that solved".to_string(),
         }
-    } else {
+    } else if gain(best).is_finite() {
         format!(
             "it lowers the held-out views' squared residuals by {:.1} σ² (over {MODEL_SWITCH_CHI2})",
             gain(best)
+        )
+    } else {
+        format!(
+            "it fits the held-out views, which {} cannot",
+            scored[0].0.name()
         )
     };
     let (model, _, _, solved) = scored.swap_remove(best);
