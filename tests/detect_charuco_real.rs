@@ -149,7 +149,7 @@ fn pycalib_wide_board_labels_and_calibration_agree_with_opencv() {
     let mine = ours(&rig, &photos);
     let total: usize = mine.iter().map(HashMap::len).sum();
     eprintln!("cubecal: {total} corners in {} photos", photos.len());
-    // 1211 measured (OpenCV 5.0's CharucoDetector labels 1220, 4.6 994).
+    // 1224 measured (OpenCV 5.0's CharucoDetector labels 1220, 4.6 994).
     assert!(total >= 1200, "only {total} corners");
     let Some(py) = python_with_aruco() else {
         return;
@@ -161,8 +161,8 @@ fn pycalib_wide_board_labels_and_calibration_agree_with_opencv() {
         "OpenCV {version}: {n_cv} corners; cubecal labels {both} of them, {differ} differently; {extra} more"
     );
     assert_eq!(differ, 0, "labels differ from OpenCV's");
-    // Measured: 981 of 4.6's 994, 1211 of 5.0's 1220 (the rest beside 3 markers cubecal does not
-    // decode in one photo).
+    // Measured: 994 of 4.6's 994 (981 before the second threshold pass), 1211 of 5.0's 1220 before
+    // it (the rest beside 3 markers cubecal did not decode in one photo; not measured since).
     assert!(
         both as f64 >= 0.98 * n_cv as f64,
         "cubecal labels only {both} of OpenCV's {n_cv} corners"
@@ -295,10 +295,14 @@ fn pycamset_cube_labels_agree_with_opencv() {
     );
     assert_eq!(differ, 0, "labels differ from OpenCV's");
     assert!(total >= n_cv, "{total} corners, OpenCV {n_cv}");
-    // Measured: 2097 of 4.6's 2186, 2117 of 5.0's 2197.
+    // Measured with OpenCV 4.6: 2173 of its 2186 (2130 before the second threshold pass of
+    // `charuco::marker_candidates`). The 13 left: 4 beside the two markers of 14.jpg face 2 and the
+    // one of 13.jpg face 4 that cubecal does not decode, the rest corners whose fit finds no
+    // X-junction at grazing angles (17.jpg face 2, 14.jpg face 2, 15.jpg face 2).
     assert!(
-        both as f64 >= 0.95 * n_cv as f64,
-        "cubecal labels only {both} of OpenCV's {n_cv} corners"
+        n_cv - both <= 13,
+        "cubecal leaves {} of OpenCV's {n_cv} corners unlabelled (13 measured)",
+        n_cv - both
     );
 
     let mut views = Vec::new();

@@ -80,6 +80,15 @@ pub const THRESHOLD_OFFSET: i32 = 4;
 /// than the mean around it even where light bits touch it. Larger markers keep a dark outline
 /// along their border's outer edge, which is all the outline needs.
 pub const BOX_PX: usize = 15;
+/// Side of the second pass's box (see [`marker_candidates`]), px. Where a face is seen at a grazing
+/// angle, the white gap between a marker and the black squares beside it (two-thirds of a cell
+/// each side on the ArUco boards OpenCV draws, a sixth of a square) narrows to 2–3 px: in a
+/// [`BOX_PX`] box the mean is pulled down so far by the black squares around that the gap falls
+/// below it too, and the marker's border joins the squares into one region that is no
+/// quadrilateral. A box of 9 px keeps gaps of 2 px apart (the pyCamSet cube photos: 22 of the 24
+/// markers OpenCV 4.6 decodes and cubecal did not come out as regions of their own); it is not the
+/// only pass because at 9 px the border of a large marker is hollow, its outline broken by noise.
+pub const FINE_BOX_PX: usize = 9;
 /// Smallest side of a marker's quadrilateral, px per cell of the `(n + 2)²` grid.
 pub const MIN_CELL_PX: f64 = 1.5;
 /// Smallest ratio of the quadrilateral's area to its region's hull.
@@ -159,17 +168,19 @@ fn window_sums(v: &[u16], r: usize, out: &mut [u16], pre: &mut [u32]) {
 // must stay below 2¹⁶, and the box's pixel count must be a multiple of the 3 × 3 window's.
 const _: () = assert!(BOX_PX * BOX_PX * (255 + THRESHOLD_OFFSET as usize) <= u16::MAX as usize);
 const _: () = assert!(BOX_PX.is_multiple_of(3) && !BOX_PX.is_multiple_of(2));
+const _: () = assert!(FINE_BOX_PX.is_multiple_of(3) && !FINE_BOX_PX.is_multiple_of(2));
+const _: () = assert!(FINE_BOX_PX < BOX_PX);
 
 /// The dark pixels of the adaptive threshold, row by row (`row_out(y, row)`, one byte per pixel,
 /// 1 = dark): the 3 × 3 mean around a pixel at least [`THRESHOLD_OFFSET`] below the mean of the
-/// [`BOX_PX`] box around it (both windows clipped by the frame). Separable sums in integers: per
+/// `BOX` box around it ([`BOX_PX`] or [`FINE_BOX_PX`]) (both windows clipped by the frame). Separable sums in integers: per
 /// column, the sums over the box's rows (kept running: the entering row added, the leaving one
 /// taken off) and over the 3 rows around the pixel, then over the windows along the row
 /// ([`window_sums`]).
-fn threshold(img: &GrayImage, mut row_out: impl FnMut(usize, &[u8])) {
+fn threshold<const BOX: usize>(img: &GrayImage, mut row_out: impl FnMut(usize, &[u8])) {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let src = img.as_raw();
-    let r = BOX_PX / 2;
+    let r = BOX / 2;
     let side = 2 * r + 1;
     // Pixels per window column span.
     let n3x: Vec<i32> = (0..w)
@@ -267,10 +278,10 @@ struct Run {
 
 /// The runs of dark pixels of the adaptive threshold, in raster order, and where each row's
 /// runs start (`h + 1` entries).
-fn dark_runs(img: &GrayImage) -> (Vec<Run>, Vec<usize>) {
+fn dark_runs<const BOX: usize>(img: &GrayImage) -> (Vec<Run>, Vec<usize>) {
     let mut runs = Vec::new();
     let mut row_start = Vec::with_capacity(img.height() as usize + 1);
-    threshold(img, |y, row| {
+    threshold::<BOX>(img, |y, row| {
         row_start.push(runs.len());
         let mut x = 0;
         while let Some(k) = row[x..].iter().position(|&d| d != 0) {
@@ -305,8 +316,8 @@ fn find(parent: &mut [u32], mut k: u32) -> u32 {
 /// first pixel. Run-length labelling: runs on neighbouring rows that share a column are joined
 /// (union–find, the earliest run the root), then each region's runs give its rows, pixel count and
 /// bounding box.
-fn regions(img: &GrayImage, min_side: f64) -> Vec<Region> {
-    let (runs, row_start) = dark_runs(img);
+fn regions<const BOX: usize>(img: &GrayImage, min_side: f64) -> Vec<Region> {
+    let (runs, row_start) = dark_runs::<BOX>(img);
     let mut parent: Vec<u32> = (0..runs.len() as u32).collect();
     for y in 1..row_start.len().saturating_sub(1) {
         let (mut i, mut j) = (row_start[y - 1], row_start[y]);
@@ -859,6 +870,8 @@ pub enum CandidateOutcome {
 /// pixel count and outcome.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Candidate {
+    /// The threshold's box it was found with ([`BOX_PX`] or [`FINE_BOX_PX`]).
+    pub box_px: usize,
     pub bbox: [u32; 4],
     /// The quadrilateral read, when its outline is one.
     pub quad: Option<[Vector2<f64>; 4]>,
@@ -878,7 +891,11 @@ pub fn find_markers(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Marker> {
 }
 
 /// Every dark region of at least a marker's minimum size and what became of it (for measuring
-/// which markers are missed and why; [`find_markers`] keeps the decoded ones).
+/// which markers are missed and why; [`find_markers`] keeps the decoded ones). Two passes: the
+/// regions of the [`BOX_PX`] threshold, then those of the [`FINE_BOX_PX`] one that do not lie on a
+/// marker the first pass decoded (their middle outside its quadrilateral): markers whose border
+/// the first joined to the black squares around (see [`FINE_BOX_PX`]). A marker of the second
+/// pass whose middle lies in a quadrilateral of the first is that marker again and dropped.
 pub fn marker_candidates(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Candidate> {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let Some(min_bits) = dicts.iter().map(|d| d.bits).min() else {
@@ -887,9 +904,97 @@ pub fn marker_candidates(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Candidate
     let min_side = (min_bits + 2) as f64 * MIN_CELL_PX;
     let max_side = w.min(h) as f64 / 2.0;
     let mut out = Vec::new();
-    for region in regions(img, min_side) {
+    for region in regions::<BOX_PX>(img, min_side) {
         let (quad, outcome) = examine(img, &region, dicts, (w, h), min_side, max_side);
         out.push(Candidate {
+            box_px: BOX_PX,
+            bbox: region.bbox,
+            quad,
+            pixels: region.pixels,
+            outcome,
+        });
+    }
+    // The first pass's markers, with their bounding boxes for a quick test.
+    let first: Vec<([Vector2<f64>; 4], [f64; 4])> = out
+        .iter()
+        .filter_map(|c| match &c.outcome {
+            CandidateOutcome::Decoded(m) => Some((m.corners, bounds(&m.corners))),
+            _ => None,
+        })
+        .collect();
+    let on_first = |p: Vector2<f64>| {
+        first.iter().any(|(q, b)| {
+            p.x >= b[0] && p.y >= b[1] && p.x <= b[2] && p.y <= b[3] && inside_convex(q, p)
+        })
+    };
+    // Where the second pass looks: around the first pass's markers, [`ROI_REACH`] times a marker's
+    // extent on each side — a marker the first pass joined to the squares around is the neighbour of
+    // one it decoded (or no corner beside it has two markers) — one rectangle for the frame.
+    let Some(roi) = first
+        .iter()
+        .map(|(_, b)| {
+            let (rx, ry) = (ROI_REACH * (b[2] - b[0]), ROI_REACH * (b[3] - b[1]));
+            [b[0] - rx, b[1] - ry, b[2] + rx, b[3] + ry]
+        })
+        .reduce(|a, b| {
+            [
+                a[0].min(b[0]),
+                a[1].min(b[1]),
+                a[2].max(b[2]),
+                a[3].max(b[3]),
+            ]
+        })
+    else {
+        return out;
+    };
+    let rx0 = roi[0].floor().max(0.0) as u32;
+    let ry0 = roi[1].floor().max(0.0) as u32;
+    let rx1 = (roi[2].ceil().max(0.0) as u32).min(img.width());
+    let ry1 = (roi[3].ceil().max(0.0) as u32).min(img.height());
+    if rx1 <= rx0 || ry1 <= ry0 {
+        return out;
+    }
+    // The first pass's regions by their left edge: a region of the second whose bounding box is
+    // one of them to [`SAME_REGION_PX`] is the same outline again, examined once already.
+    let mut seen: Vec<[u32; 4]> = out.iter().map(|c| c.bbox).collect();
+    seen.sort_unstable();
+    let tol = SAME_REGION_PX;
+    let seen_before = |b: [u32; 4]| {
+        let from = seen.partition_point(|s| s[0] + tol < b[0]);
+        seen[from..]
+            .iter()
+            .take_while(|s| s[0] <= b[0] + tol)
+            .any(|s| (1..4).all(|k| s[k].abs_diff(b[k]) <= tol))
+    };
+    let crop = image::imageops::crop_imm(img, rx0, ry0, rx1 - rx0, ry1 - ry0).to_image();
+    let (cw, ch) = (crop.width(), crop.height());
+    for mut region in regions::<FINE_BOX_PX>(&crop, min_side) {
+        let [x0, y0, x1, y1] = region.bbox;
+        // Cut by the rectangle (where it is not the frame's border): not a whole outline.
+        if (x0 == 0 && rx0 > 0)
+            || (y0 == 0 && ry0 > 0)
+            || (x1 + 1 == cw && rx1 < img.width())
+            || (y1 + 1 == ch && ry1 < img.height())
+        {
+            continue;
+        }
+        region.bbox = [x0 + rx0, y0 + ry0, x1 + rx0, y1 + ry0];
+        for row in &mut region.rows {
+            *row = (row.0 + ry0, row.1 + rx0, row.2 + rx0);
+        }
+        let [x0, y0, x1, y1] = region.bbox;
+        let middle = Vector2::new(f64::from(x0 + x1) / 2.0, f64::from(y0 + y1) / 2.0);
+        if on_first(middle) || seen_before(region.bbox) {
+            continue;
+        }
+        let (quad, outcome) = examine(img, &region, dicts, (w, h), min_side, max_side);
+        if let CandidateOutcome::Decoded(m) = &outcome
+            && on_first(m.corners.iter().sum::<Vector2<f64>>() / 4.0)
+        {
+            continue;
+        }
+        out.push(Candidate {
+            box_px: FINE_BOX_PX,
             bbox: region.bbox,
             quad,
             pixels: region.pixels,
@@ -897,6 +1002,34 @@ pub fn marker_candidates(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Candidate
         });
     }
     out
+}
+
+/// How far around the first pass's markers the second pass of [`marker_candidates`] looks, in
+/// multiples of a marker's extent (its bounding box's width and height): a marker beside it (two
+/// squares' diagonal away, at most about 2 of its extents on a board OpenCV draws) and its whole
+/// outline.
+pub const ROI_REACH: f64 = 2.5;
+/// Largest difference, px, of each side of two regions' bounding boxes for the second pass of
+/// [`marker_candidates`] to take them for the same outline.
+pub const SAME_REGION_PX: u32 = 2;
+
+/// `[x0, y0, x1, y1]` of a quadrilateral.
+fn bounds(q: &[Vector2<f64>; 4]) -> [f64; 4] {
+    q.iter().fold(
+        [
+            f64::INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NEG_INFINITY,
+        ],
+        |b, p| [b[0].min(p.x), b[1].min(p.y), b[2].max(p.x), b[3].max(p.y)],
+    )
+}
+
+/// Whether `p` lies inside the convex quadrilateral `q` (either orientation).
+fn inside_convex(q: &[Vector2<f64>; 4], p: Vector2<f64>) -> bool {
+    let s: [f64; 4] = std::array::from_fn(|k| cross(q[k], q[(k + 1) % 4], p));
+    s.iter().all(|&v| v >= 0.0) || s.iter().all(|&v| v <= 0.0)
 }
 
 fn examine(
@@ -1171,9 +1304,9 @@ mod tests {
     }
 
     /// The threshold by its definition: the clipped windows' sums taken pixel by pixel.
-    fn threshold_direct(img: &GrayImage) -> Vec<u8> {
+    fn threshold_direct(img: &GrayImage, box_px: usize) -> Vec<u8> {
         let (w, h) = (img.width() as i64, img.height() as i64);
-        let r = (BOX_PX / 2) as i64;
+        let r = (box_px / 2) as i64;
         let at = |x: i64, y: i64| i64::from(img.get_pixel(x as u32, y as u32).0[0]);
         let sum = |x: i64, y: i64, r: i64| {
             let (mut s, mut n) = (0, 0);
@@ -1201,12 +1334,16 @@ mod tests {
         for (w, h, seed) in [(97, 61, 1), (40, 33, 2), (16, 9, 3), (7, 5, 4)] {
             let img = blobs(w, h, seed);
             let mut fast = Vec::new();
-            threshold(&img, |_, row| fast.extend_from_slice(row));
-            let direct = threshold_direct(&img);
-            let differ = fast.iter().zip(&direct).filter(|(a, b)| a != b).count();
-            let dark = direct.iter().filter(|&&d| d == 1).count();
-            assert!(dark > 0, "{w}×{h}: no dark pixel to compare");
-            assert_eq!(differ, 0, "{w}×{h}: {differ} pixels differ");
+            threshold::<BOX_PX>(&img, |_, row| fast.extend_from_slice(row));
+            let mut fine = Vec::new();
+            threshold::<FINE_BOX_PX>(&img, |_, row| fine.extend_from_slice(row));
+            for (fast, box_px) in [(fast, BOX_PX), (fine, FINE_BOX_PX)] {
+                let direct = threshold_direct(&img, box_px);
+                let differ = fast.iter().zip(&direct).filter(|(a, b)| a != b).count();
+                let dark = direct.iter().filter(|&&d| d == 1).count();
+                assert!(dark > 0, "{w}×{h}, box {box_px}: no dark pixel to compare");
+                assert_eq!(differ, 0, "{w}×{h}, box {box_px}: {differ} pixels differ");
+            }
         }
     }
 
@@ -1218,7 +1355,7 @@ mod tests {
         let img = blobs(181, 127, 5);
         let (w, h) = (img.width() as usize, img.height() as usize);
         let mut dark = Vec::new();
-        threshold(&img, |_, row| dark.extend_from_slice(row));
+        threshold::<BOX_PX>(&img, |_, row| dark.extend_from_slice(row));
         // Reference: 4-connected flood fill from each unvisited dark pixel in raster order.
         let mut seen = vec![false; w * h];
         let mut reference: Vec<RegionRef> = Vec::new();
@@ -1276,7 +1413,7 @@ mod tests {
                 .collect();
             reference.push((pixels.len(), bbox, rows));
         }
-        let found = regions(&img, 0.0);
+        let found = regions::<BOX_PX>(&img, 0.0);
         assert!(found.len() > 20, "only {} regions", found.len());
         assert_eq!(found.len(), reference.len(), "regions");
         for (r, (pixels, bbox, rows)) in found.iter().zip(&reference) {
