@@ -11,7 +11,7 @@ use cubecal::calib::{self, Correspondence, Fix, SolveOptions, View, init::InitMe
 use cubecal::camera::{Camera, DistortionModel, PARAM_NAMES, Pose, idx};
 use cubecal::detect::score::{EvalSet, score};
 use cubecal::detect::{CornerFinder, detect};
-use cubecal::render::correspondences::{add_noise, look_at, three_face_cube};
+use cubecal::render::correspondences::{add_noise, look_at, three_face_cube_points};
 use cubecal::render::{ground_truth, render};
 use cubecal::rig::Rig;
 use nalgebra::{Rotation3, Unit, Vector3};
@@ -29,10 +29,7 @@ const SIDE_MM: f64 = 200.0;
 /// Views of the three-face cube from its visible octant at 1.1–2.4 sides, the camera turned so that
 /// the cube lies up to 80° off its axis. Corners inside the image (2 px border) are kept.
 fn fisheye_views(camera: &Camera, n_views: usize, seed: u64) -> (Vec<View>, Vec<Pose>) {
-    let pts: Vec<Vector3<f64>> = three_face_cube(SIDE_MM)
-        .iter()
-        .flat_map(|g| g.points().collect::<Vec<_>>())
-        .collect();
+    let pts = three_face_cube_points(SIDE_MM);
     let centre = Vector3::repeat(SIDE_MM / 2.0);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let [w, h] = camera.image_size;
@@ -171,15 +168,7 @@ fn planar_fisheye_views_are_recovered() {
     let (views, _) = fisheye_views(&truth, 12, 11);
     let planar: Vec<View> = views
         .iter()
-        .map(|v| View {
-            name: v.name.clone(),
-            points: v
-                .points
-                .iter()
-                .copied()
-                .filter(|c| c.xyz.x == SIDE_MM)
-                .collect(),
-        })
+        .map(|v| v.filter_map_points(|c| (c.xyz.x == SIDE_MM).then_some(*c)))
         .filter(|v| v.points.len() >= 30)
         .collect();
     assert!(planar.len() >= 8, "{} planar views", planar.len());

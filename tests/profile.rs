@@ -974,6 +974,12 @@ fn max_distance(ours: &[[f64; 2]], theirs: &[Option<[f64; 2]>]) -> (f64, usize) 
         .fold((0.0, 0), |(m, n), d| (m.max(d), n + 1))
 }
 
+/// The `points.json` the export peers (`tests/exports/project.py`) project.
+fn points_json(pts: &[Vector3<f64>]) -> String {
+    serde_json::json!({ "points": pts.iter().map(|x| [x.x, x.y, x.z]).collect::<Vec<_>>() })
+        .to_string()
+}
+
 /// `cam`'s own projection of every point, as the peers' scripts print theirs.
 fn project_all(cam: &Camera, pts: &[Vector3<f64>]) -> Vec<[f64; 2]> {
     pts.iter()
@@ -1004,11 +1010,7 @@ fn exports_load_in_opencv_ros_and_mrcal_and_project_like_cubecal() {
         let write = |file: &str, text: String| {
             std::fs::write(tmp.path().join(file), text).unwrap_or_else(|e| panic!("{e}"))
         };
-        write(
-            "points.json",
-            serde_json::json!({ "points": pts.iter().map(|x| [x.x, x.y, x.z]).collect::<Vec<_>>() })
-                .to_string(),
-        );
+        write("points.json", points_json(&pts));
         write(
             "opencv.yaml",
             export::opencv_yaml(&p).unwrap_or_else(|e| panic!("{e}")),
@@ -1138,11 +1140,7 @@ fn kb4_exports_load_in_cv2_fisheye_ros_and_kalibr_and_project_like_cubecal() {
         let write = |file: &str, text: String| {
             std::fs::write(tmp.path().join(file), text).unwrap_or_else(|e| panic!("{e}"))
         };
-        write(
-            "points.json",
-            serde_json::json!({ "points": pts.iter().map(|x| [x.x, x.y, x.z]).collect::<Vec<_>>() })
-                .to_string(),
-        );
+        write("points.json", points_json(&pts));
         for (file, text) in [
             ("opencv.yaml", export::opencv_yaml(&p)),
             ("ros.yaml", export::ros_camera_info_yaml(&p)),

@@ -26,7 +26,7 @@ use super::linear::{
     COPLANAR_TOLERANCE, decompose_projection, dlt, focal_from_homography, homography, plane_frame,
     pose_from_homography, pose_from_projection, relative_thickness, zhang_intrinsics,
 };
-use super::{CalibError, View};
+use super::{CalibError, Correspondence, View};
 use crate::camera::{Camera, DistortionModel, Pose};
 
 /// How the initial intrinsics were obtained.
@@ -157,23 +157,17 @@ pub fn initialise_fisheye(views: &[View], image_size: [u32; 2]) -> Result<Initia
             .with_distortion(DistortionModel::Kb4, &[]);
         let central: Vec<View> = views
             .iter()
-            .map(|v| View {
-                name: v.name.clone(),
-                points: v
-                    .points
-                    .iter()
-                    .filter_map(|c| {
-                        let ray = guess.unproject(c.uv.x, c.uv.y).ok()?;
-                        (ray.z > cos_max).then(|| {
-                            let mut p = *c;
-                            p.uv = Vector2::new(
-                                centre.x + f * ray.x / ray.z,
-                                centre.y + f * ray.y / ray.z,
-                            );
-                            p
-                        })
+            .map(|v| {
+                v.filter_map_points(|c| {
+                    let ray = guess.unproject(c.uv.x, c.uv.y).ok()?;
+                    (ray.z > cos_max).then(|| Correspondence {
+                        uv: Vector2::new(
+                            centre.x + f * ray.x / ray.z,
+                            centre.y + f * ray.y / ray.z,
+                        ),
+                        ..*c
                     })
-                    .collect(),
+                })
             })
             .collect();
         let init = match initialise_pinhole(&central, image_size, DistortionModel::Kb4) {

@@ -69,6 +69,19 @@ pub struct View {
     pub points: Vec<Correspondence>,
 }
 
+impl View {
+    /// The same view (same name) with each point mapped by `f`, those it returns `None` for left out.
+    pub fn filter_map_points(
+        &self,
+        f: impl FnMut(&Correspondence) -> Option<Correspondence>,
+    ) -> View {
+        View {
+            name: self.name.clone(),
+            points: self.points.iter().filter_map(f).collect(),
+        }
+    }
+}
+
 /// Errors from the solvers. Each says what was wrong and, where there is one, what to do about it.
 #[derive(Debug, Clone, PartialEq, thiserror::Error, Serialize)]
 pub enum CalibError {

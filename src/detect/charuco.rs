@@ -408,6 +408,22 @@ fn hull(mut pts: Vec<Vector2<f64>>) -> Vec<Vector2<f64>> {
     monotone_chain(&pts)
 }
 
+/// The outer pixel-edge corners of each row run `(y, x0, x1)`: the points whose [`hull`] is the
+/// region's.
+fn row_edge_points(rows: &[(u32, u32, u32)]) -> Vec<Vector2<f64>> {
+    let mut pts = Vec::with_capacity(rows.len() * 4);
+    for &(y, x0, x1) in rows {
+        let (y, x0, x1) = (f64::from(y), f64::from(x0), f64::from(x1));
+        pts.extend([
+            Vector2::new(x0 - 0.5, y - 0.5),
+            Vector2::new(x0 - 0.5, y + 0.5),
+            Vector2::new(x1 + 0.5, y - 0.5),
+            Vector2::new(x1 + 0.5, y + 0.5),
+        ]);
+    }
+    pts
+}
+
 /// Convex hull of a region's pixels (their outer pixel edges), as [`hull`] gives it: the same
 /// vertices in the same order. Its rows are consecutive (the region is connected), so the
 /// candidates are, on each horizontal line between two rows, the leftmost and rightmost pixel edge
@@ -415,17 +431,7 @@ fn hull(mut pts: Vec<Vector2<f64>>) -> Vec<Vector2<f64>> {
 fn region_hull(rows: &[(u32, u32, u32)]) -> Vec<Vector2<f64>> {
     let consecutive = rows.windows(2).all(|p| p[1].0 == p[0].0 + 1);
     if rows.is_empty() || !consecutive {
-        let mut pts = Vec::with_capacity(rows.len() * 4);
-        for &(y, x0, x1) in rows {
-            let (y, x0, x1) = (f64::from(y), f64::from(x0), f64::from(x1));
-            pts.extend([
-                Vector2::new(x0 - 0.5, y - 0.5),
-                Vector2::new(x0 - 0.5, y + 0.5),
-                Vector2::new(x1 + 0.5, y - 0.5),
-                Vector2::new(x1 + 0.5, y + 0.5),
-            ]);
-        }
-        return hull(pts);
+        return hull(row_edge_points(rows));
     }
     let n = rows.len();
     let mut pts = Vec::with_capacity(2 * (n + 1));
@@ -1426,17 +1432,11 @@ mod tests {
             assert_eq!((r.pixels, r.bbox, &r.rows), (*pixels, *bbox, rows));
             // The hull from the rows: the same vertices in the same order as from every pixel
             // edge, sorted.
-            let mut pts = Vec::new();
-            for &(y, x0, x1) in rows {
-                let (y, x0, x1) = (f64::from(y), f64::from(x0), f64::from(x1));
-                pts.extend([
-                    Vector2::new(x0 - 0.5, y - 0.5),
-                    Vector2::new(x0 - 0.5, y + 0.5),
-                    Vector2::new(x1 + 0.5, y - 0.5),
-                    Vector2::new(x1 + 0.5, y + 0.5),
-                ]);
-            }
-            assert_eq!(region_hull(&r.rows), hull(pts), "region at {bbox:?}");
+            assert_eq!(
+                region_hull(&r.rows),
+                hull(row_edge_points(rows)),
+                "region at {bbox:?}"
+            );
         }
     }
 }

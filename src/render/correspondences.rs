@@ -69,6 +69,14 @@ pub fn three_face_cube(side_mm: f64) -> Vec<Grid> {
     ]
 }
 
+/// Every inner corner of [`three_face_cube`], face by face.
+pub fn three_face_cube_points(side_mm: f64) -> Vec<Vector3<f64>> {
+    three_face_cube(side_mm)
+        .iter()
+        .flat_map(|g| g.points().collect::<Vec<_>>())
+        .collect()
+}
+
 /// `cam_from_rig` for a camera at `eye` looking at `target`, with the image "up" near `up`
 /// (camera frame: x right, y down, z forward).
 pub fn look_at(eye: &Vector3<f64>, target: &Vector3<f64>, up: &Vector3<f64>) -> Pose {
@@ -104,11 +112,7 @@ pub struct Scenario {
 /// random roll, distance chosen so that the cube fills much of the image. Only corners that project
 /// inside the image (with a 2 px border) are kept; every view keeps at least 100 of them.
 pub fn cube_scenario(camera: &Camera, side_mm: f64, n_views: usize, seed: u64) -> Scenario {
-    let grids = three_face_cube(side_mm);
-    let pts: Vec<Vector3<f64>> = grids
-        .iter()
-        .flat_map(|g| g.points().collect::<Vec<_>>())
-        .collect();
+    let pts = three_face_cube_points(side_mm);
     let centre = Vector3::repeat(side_mm / 2.0);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let [w, h] = camera.image_size;
