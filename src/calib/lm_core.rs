@@ -331,7 +331,8 @@ pub(super) struct Marginal {
     pub(super) sigma2: f64,
     /// Covariance of the shared block, `σ̂² S⁻¹`.
     pub(super) covariance: DMatrix<f64>,
-    s_inv: DMatrix<f64>,
+    /// `S⁻¹`.
+    pub(super) s_inv: DMatrix<f64>,
     vinv: Vec<Mat6>,
 }
 

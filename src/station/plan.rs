@@ -586,9 +586,11 @@ impl Planning {
         };
         let at_prompt = off(pose)?;
         let mut best = (pose, at_prompt);
-        let steps = [-20.0, -15.0, -10.0, -5.0, 0.0, 5.0, 10.0, 15.0, 20.0];
-        for dr in steps {
-            for dt in steps {
+        // ±40° on each axis in 5° steps: wide enough for a forgotten tilt (the planner asks for
+        // up to ±30°, and the cradle left level must be among the poses tried).
+        let steps: Vec<f64> = (-8..=8).map(|k| 5.0 * f64::from(k)).collect();
+        for &dr in &steps {
+            for &dt in &steps {
                 let p = StagePose {
                     rotation_deg: pose.rotation_deg + dr,
                     tilt_deg: pose.tilt_deg + dt,
