@@ -32,13 +32,16 @@
 //!    marker. A corner is labelled only when both are decoded and the homographies of both put the
 //!    corner at the same place (within [`MAX_PREDICTION_DISAGREEMENT`] of a square): one wrongly
 //!    decoded marker cannot label a corner. (OpenCV's `CharucoDetector` also needs two markers by
-//!    default, `minMarkers = 2`.) The corner is then fitted with [`refine::refine_near_border`]
-//!    with the image steps of the two markers' homographies, scaled so that the fit's window stays in
-//!    the white gap between the corner and the markers (markers fill the middle of their squares, the
-//!    window must not reach them). A prediction a pixel off (markers drawn or printed a pixel from
-//!    their place) brings a marker's edge into that window: a fit that finds no X-junction there, or
-//!    is pulled away, is started again a pixel away (`fit_corner`); a corner whose fit fails is not
-//!    labelled.
+//!    default, `minMarkers = 2`.) The corner is then fitted by the checkerboard corners' fit, its
+//!    window reaching along the edges as far as theirs (the image steps of the two markers'
+//!    homographies), but on the pixels of the white gaps beside its two lines only
+//!    ([`refine::refine_near_border_in_bands`], `fit_in_gaps`): the markers fill the middle of the
+//!    white squares, the fit must not see them. Where that fails (gaps under a pixel wide and the
+//!    like), the fit is tried again with the whole window shrunk into the gap around the corner
+//!    ([`refine::refine_near_border`] with the steps scaled); a prediction a pixel off (markers
+//!    drawn or printed a pixel from their place) brings a marker's edge into that window: a fit that
+//!    finds no X-junction there, or is pulled away, is started again a pixel away (`fit_corner`); a
+//!    corner whose fits fail is not labelled.
 //!
 //! Everything runs on the full-resolution frame; no part of a face needs any other part to be seen.
 //!
@@ -65,6 +68,12 @@
 //! 8.55 ms realistic per frame (`cargo bench --bench charuco`, 27 Nov 2026); it labels 43 more of
 //! OpenCV's corners on the real cube photos. Cheaper next: one rectangle per face instead of one
 //! per frame, or both thresholds from the one set of 3 × 3 sums.
+//!
+//! The corner fit in the white gaps (`fit_in_gaps`, windows as long as a checkerboard corner's)
+//! costs 4 %: median `detect` per frame 6.45 ms hard and 9.35 ms realistic against 6.22 and
+//! 8.97 ms for the build before it (27 Nov 2026, two runs of each alternately, the same frames
+//! read from PNG); it fits 65 and 161 corners of the bench's frames where that build fitted 35 and
+//! 134.
 //!
 //! Written here because no well-kept crate detects OpenCV's ArUco markers (see [`crate::rig::charuco`]).
 
@@ -1100,6 +1109,45 @@ fn marker_board_corners(face: &Face, ch: &Charuco, sq: (usize, usize)) -> [Vecto
     ]
 }
 
+/// How far the bands of [`fit_in_gaps`] stay from the markers' edges as the markers predict them,
+/// px: room for the prediction's error and the edges' blur. Measured (`charuco_eval`, 24 poses,
+/// realistic / hard): 0.5 px 2300 / 511 corners, RMS 0.0205 / 0.0859 px; 1 px 2249 / 509, 0.0189 /
+/// 0.0862; 1.5 px 2135 / 501, 0.0162 / 0.0846; no wrong label in any.
+pub const GAP_MARGIN_PX: f64 = 1.0;
+
+/// Fit the corner predicted at `p0` (`a`, `b` the image steps of a whole square) with the window of
+/// a checkerboard corner, reaching [`refine::WINDOW`] of the way to the next corners along its
+/// edges, but only the pixels within the white gaps beside its two lines
+/// ([`refine::refine_near_border_in_bands`]): the gap is `gap` of a square wide (between a marker
+/// and its square's sides), the bands reach [`GAP_MARGIN_PX`] less far from each line. Within
+/// them the four squares are an X-junction along the whole of the edges; the markers' edges beyond
+/// them, left out, do not bias the fit anyway, as they are point-symmetric about the corner (the
+/// two markers diagonal to each other). `None` when the bands would be under a pixel wide or the fit
+/// fails ([`fit_corner`], the window shrunk into the gap, is tried then).
+///
+/// Before (the shrunk window only), at grazing angles the gap is 2–4 px wide, the window as
+/// narrow, and the blur takes all of it: the fit found no X-junction where two markers predict the
+/// corner within 0.02–0.09 of a square (the pyCamSet cube photos). Measured against it: the cube
+/// photos 2173 → 2179 of OpenCV 4.6's 2186 corners labelled (2411 → 2421 in all), the calibration
+/// on them RMS 0.404 → 0.393 px; `charuco_eval` (24 poses) realistic 2070 → 2249 corners, RMS
+/// 0.0322 → 0.0189 px, hard 260 → 509 corners, RMS 0.1688 → 0.0862 px, no wrong label.
+fn fit_in_gaps(
+    img: &GrayImage,
+    p0: Vector2<f64>,
+    a: Vector2<f64>,
+    b: Vector2<f64>,
+    gap: f64,
+) -> Option<refine::Refined> {
+    // A line's distance from the marker edge beside it, px: along the other step, `gap` of it,
+    // measured across the line.
+    let area = (a.x * b.y - a.y * b.x).abs();
+    let band = [area / a.norm(), area / b.norm()].map(|h| gap * h - GAP_MARGIN_PX);
+    if band.iter().any(|&w| !(w >= 1.0)) {
+        return None;
+    }
+    refine::refine_near_border_in_bands(img, p0, a, b, band).ok()
+}
+
 /// Share of the fit window's half-extent by which [`fit_corner`] moves its start when the fit
 /// from the markers' prediction finds no X-junction.
 pub const RESTART_SHIFT: f64 = 0.3;
@@ -1225,9 +1273,11 @@ fn detect_face(
         }
     }
     let s = face.square_mm;
-    // The fit's window (half-extent refine::WINDOW of the steps given) must stay within the white
-    // gap around the corner: scale the steps to that gap, less a tenth of a square for the blur.
-    let gap = ((s - ch.marker_mm) / 2.0 / s - 0.02).max(0.02);
+    // The white gap between a marker and its square's sides, in squares.
+    let gap_frac = (s - ch.marker_mm) / 2.0 / s;
+    // The fallback fit's window (half-extent refine::WINDOW of the steps given) must stay within
+    // that gap around the corner: scale the steps to it, less a fiftieth of a square for the blur.
+    let gap = (gap_frac - 0.02).max(0.02);
     let scale = gap / refine::WINDOW;
     let mut corners = Vec::new();
     for cy in 0..face.rows {
@@ -1258,7 +1308,9 @@ fn detect_face(
                 continue;
             }
             let p0 = (c0 + c1) / 2.0;
-            let Some(fit) = fit_corner(img, p0, a * scale, b * scale) else {
+            let Some(fit) = fit_in_gaps(img, p0, a, b, gap_frac)
+                .or_else(|| fit_corner(img, p0, a * scale, b * scale))
+            else {
                 continue;
             };
             let (row, col) = (face.rows - 1 - cy, cx);

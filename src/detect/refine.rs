@@ -336,7 +336,8 @@ fn slab(nx: f64, c: f64, half: f64) -> Option<(f64, f64)> {
 struct Bands {
     centre: Vector2<f64>,
     normals: [Vector2<f64>; 2],
-    half_width: f64,
+    /// Half-width of the band around each line (px).
+    half_width: [f64; 2],
 }
 
 /// The pixels of the parallelogram `|s| ≤ ws, |t| ≤ wt` around `p0` (steps `a`, `b`) that lie in one
@@ -382,7 +383,7 @@ fn window(
     let bands = bands.unwrap_or(Bands {
         centre: Vector2::zeros(),
         normals: [Vector2::new(-a.y, a.x) / la, Vector2::new(-b.y, b.x) / lb],
-        half_width: BAND_PX,
+        half_width: [BAND_PX; 2],
     });
     let [na, nb] = bands.normals;
     let nc = [na.dot(&bands.centre), nb.dot(&bands.centre)];
@@ -424,8 +425,8 @@ fn window(
             None => (f64::INFINITY, f64::NEG_INFINITY),
         };
         let mut spans = [
-            clip(slab(na.x, na.y * dy - nc[0], bands.half_width)),
-            clip(slab(nb.x, nb.y * dy - nc[1], bands.half_width)),
+            clip(slab(na.x, na.y * dy - nc[0], bands.half_width[0])),
+            clip(slab(nb.x, nb.y * dy - nc[1], bands.half_width[1])),
         ];
         if spans[1].0 < spans[0].0 {
             spans.swap(0, 1);
@@ -815,7 +816,7 @@ pub fn refine(
     a: Vector2<f64>,
     b: Vector2<f64>,
 ) -> Result<Refined, RefineFailure> {
-    refine_reusing(img, p0, a, b, None, false)
+    refine_reusing(img, p0, a, b, None, false, NO_BAND_CAP)
 }
 
 /// [`refine`], with the window shrunk about `p0` to fit inside the image where the image border
@@ -828,7 +829,27 @@ pub fn refine_near_border(
     a: Vector2<f64>,
     b: Vector2<f64>,
 ) -> Result<Refined, RefineFailure> {
-    refine_reusing(img, p0, a, b, None, true)
+    refine_reusing(img, p0, a, b, None, true, NO_BAND_CAP)
+}
+
+/// No cap on the bands' half-widths beyond [`BAND_PX`].
+const NO_BAND_CAP: [f64; 2] = [f64::INFINITY; 2];
+
+/// [`refine_near_border`] for a junction that is an X only close to its two lines: the bands around
+/// the line along `a` and the one along `b` are at most `band_px[0]` and `band_px[1]` px wide on each
+/// side, in both stages. A ChArUco corner is one: its light squares hold markers, so the four squares'
+/// X-junction holds along the whole of its edges but only within the white gap between a marker and
+/// the lines. Bands that stay in that gap let the window reach along the edges as far as a
+/// checkerboard corner's (`a`, `b` the steps of a whole square) instead of shrinking the whole window
+/// into the gap, which at grazing angles leaves fewer pixels than the blur's width.
+pub fn refine_near_border_in_bands(
+    img: &GrayImage,
+    p0: Vector2<f64>,
+    a: Vector2<f64>,
+    b: Vector2<f64>,
+    band_px: [f64; 2],
+) -> Result<Refined, RefineFailure> {
+    refine_reusing(img, p0, a, b, None, true, band_px)
 }
 
 /// [`refine_near_border`] (the fit grid corners get), also returning the pixels its final stage
@@ -845,7 +866,7 @@ pub fn refine_near_border_with_window(
     }
     WINDOWS.with(|cell| {
         let mut windows = cell.take();
-        let result = refine_in(&mut windows, img, p0, a, b, None, true).map(|fit| {
+        let result = refine_in(&mut windows, img, p0, a, b, None, true, NO_BAND_CAP).map(|fit| {
             let fine = &windows[1];
             // The window keeps offsets from `p0` (whole pixels minus `p0`, in f32): round back.
             let pixels = fine.x[..fine.n]
@@ -886,7 +907,7 @@ pub fn refine_mapped(
     b: Vector2<f64>,
     map: &dyn PlaneMap,
 ) -> Result<Refined, RefineFailure> {
-    refine_reusing(img, p0, a, b, Some(map), true)
+    refine_reusing(img, p0, a, b, Some(map), true, NO_BAND_CAP)
 }
 
 /// [`refine_in`] with this thread's two stage windows, kept from one fit to the next (see [`Window`]),
@@ -898,13 +919,14 @@ fn refine_reusing(
     b: Vector2<f64>,
     map: Option<&dyn PlaneMap>,
     shrink_at_border: bool,
+    band_cap: [f64; 2],
 ) -> Result<Refined, RefineFailure> {
     thread_local! {
         static WINDOWS: Cell<[Window; 2]> = Cell::default();
     }
     WINDOWS.with(|cell| {
         let mut windows = cell.take();
-        let result = refine_in(&mut windows, img, p0, a, b, map, shrink_at_border);
+        let result = refine_in(&mut windows, img, p0, a, b, map, shrink_at_border, band_cap);
         cell.set(windows);
         result
     })
@@ -929,7 +951,8 @@ fn map_window(
             if bands
                 .normals
                 .iter()
-                .all(|n| n.dot(&d).abs() > bands.half_width)
+                .zip(bands.half_width)
+                .all(|(n, hw)| n.dot(&d).abs() > hw)
             {
                 continue;
             }
@@ -952,6 +975,7 @@ fn refine_in(
     b: Vector2<f64>,
     map: Option<&dyn PlaneMap>,
     shrink: bool,
+    band_cap: [f64; 2],
 ) -> Result<Refined, RefineFailure> {
     let (image_a, image_b) = (a, b);
     let la = a.norm();
@@ -962,7 +986,13 @@ fn refine_in(
         * (WINDOW * la).clamp(MIN_HALF_PX, MAX_HALF_PX)
         * (WINDOW * lb).clamp(MIN_HALF_PX, MAX_HALF_PX);
     let coarse = area >= COARSE_MIN_AREA_PX;
-    window(coarse_win, img, p0, a, b, None, coarse, shrink).ok_or(RefineFailure::Window)?;
+    let first_bands = Bands {
+        centre: Vector2::zeros(),
+        normals: [Vector2::new(-a.y, a.x) / la, Vector2::new(-b.y, b.x) / lb],
+        half_width: band_cap.map(|cap| cap.min(BAND_PX)),
+    };
+    window(coarse_win, img, p0, a, b, Some(first_bands), coarse, shrink)
+        .ok_or(RefineFailure::Window)?;
     // In a mapped fit, the plane position of p0 and the steps there (to first order).
     let (q0, a, b) = match map {
         None => (p0, a, b),
@@ -1003,8 +1033,11 @@ fn refine_in(
     let bands = Bands {
         centre: Vector2::new(start.p[0], start.p[1]),
         normals: [2, 3].map(|i| Vector2::new(-start.p[i].sin(), start.p[i].cos())),
-        half_width: (FINE_BAND_WIDTHS * start.p[4].abs() + FINE_BAND_MARGIN_PX)
-            .clamp(MIN_FINE_BAND_PX, BAND_PX),
+        half_width: band_cap.map(|cap| {
+            (FINE_BAND_WIDTHS * start.p[4].abs() + FINE_BAND_MARGIN_PX)
+                .clamp(MIN_FINE_BAND_PX, BAND_PX)
+                .min(cap)
+        }),
     };
     match map {
         None => window(fine_win, img, p0, a, b, Some(bands), false, shrink),
