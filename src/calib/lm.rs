@@ -502,6 +502,13 @@ impl Problem<'_> {
         }
     }
 
+    /// Point `j` of view `i`'s whitening matrix (the identity when unweighted).
+    fn whitener(&self, i: usize, j: usize) -> Matrix2<f64> {
+        self.whiten
+            .as_ref()
+            .map_or(Matrix2::identity(), |w| w[i][j])
+    }
+
     fn n_active(&self) -> usize {
         self.active
             .iter()
@@ -928,18 +935,14 @@ fn equal_weight_sandwich(
     let mut g = DMatrix::<f64>::zeros(q, q);
     let (mut chi2, mut count) = (0.0, 0usize);
     for (i, view) in problem.views.iter().enumerate() {
-        let v_inv = n.v[i].cholesky()?.inverse();
-        let wv = &n.w[i] * DMatrix::from_column_slice(6, 6, v_inv.as_slice());
+        let wv = marginal.w_vinv(n, i);
         for (j, c) in view.points.iter().enumerate() {
             if !problem.active[i][j] {
                 continue;
             }
             let cov = c.cov?;
             let (r, j_int, j_pose) = residual_jacobians(camera, &poses[i], c).ok()?;
-            let l = match &problem.whiten {
-                Some(w) => w[i][j],
-                None => Matrix2::identity(),
-            };
+            let l = problem.whitener(i, j);
             chi2 += r.dot(&(cov.try_inverse()? * r));
             count += 2;
             let jc = DMatrix::from_column_slice(2, N_INTRINSIC, (l * j_int).as_slice()) * m;

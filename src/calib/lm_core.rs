@@ -337,11 +337,17 @@ pub(super) struct Marginal {
 }
 
 impl Marginal {
+    /// `W_i V_i⁻¹` (q×6) of view `i`, `n` the normal equations this was computed from: how the
+    /// view's pose moves with the shared block.
+    pub(super) fn w_vinv(&self, n: &Normal, i: usize) -> DMatrix<f64> {
+        &n.w[i] * DMatrix::from_column_slice(6, 6, self.vinv[i].as_slice())
+    }
+
     /// Standard deviations of view `i`'s rotation (radians) and translation, from
     /// `σ̂² (V⁻¹ + V⁻¹ Wᵀ S⁻¹ W V⁻¹)`; `n` the normal equations this was computed from.
     pub(super) fn pose_std(&self, n: &Normal, i: usize) -> ([f64; 3], [f64; 3]) {
         let vi = DMatrix::from_column_slice(6, 6, self.vinv[i].as_slice());
-        let wv = &n.w[i] * &vi;
+        let wv = self.w_vinv(n, i);
         let cov = (&vi + wv.transpose() * &self.s_inv * &wv) * self.sigma2;
         let sd = |k: usize| cov[(k, k)].max(0.0).sqrt();
         ([sd(0), sd(1), sd(2)], [sd(3), sd(4), sd(5)])
