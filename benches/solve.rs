@@ -19,22 +19,45 @@ fn cpu_ms_per_run(start: Option<u64>, runs: usize) -> String {
     }
 }
 
-/// `weighted`: every point carries its covariance and the solve whitens by it (issue 29); otherwise
-/// the equally weighted solve. The two are run side by side, so their ratio is measured in one run.
-fn bench(label: &str, n_views: usize, reps: usize, weighted: bool) -> f64 {
+/// How the bench's points are weighted.
+#[derive(Clone, Copy, PartialEq)]
+enum Mode {
+    /// No covariances: the plain equally weighted solve.
+    Plain,
+    /// Every point carries its covariance and the solve whitens by it (issue 29).
+    Weighted,
+    /// The station's default: every point carries its covariance (one in ten three times the
+    /// others' σ, as a grazing face's), weighted equally with the ceiling, σ from the sandwich.
+    EqualWithCovariance,
+}
+
+/// The modes are run side by side, so their ratios are measured in one run.
+fn bench(label: &str, n_views: usize, reps: usize, mode: Mode) -> f64 {
     let camera = reference_camera();
     let sc = cube_scenario(&camera, 200.0, n_views, 42);
     let mut views = add_noise(&sc.views, 0.3, 43);
-    // Each point with its covariance, as the detector's corners come: the solve is weighted.
-    if weighted {
+    // Each point with its covariance, as the detector's corners come.
+    if mode != Mode::Plain {
         for v in &mut views {
-            for p in &mut v.points {
-                p.cov = Some(nalgebra::Matrix2::new(0.09, 0.01, 0.01, 0.08));
+            for (k, p) in v.points.iter_mut().enumerate() {
+                let scale = if mode == Mode::EqualWithCovariance && k % 10 == 0 {
+                    9.0
+                } else {
+                    1.0
+                };
+                p.cov = Some(nalgebra::Matrix2::new(0.09, 0.01, 0.01, 0.08) * scale);
             }
         }
     }
     let n_points: usize = views.iter().map(|v| v.points.len()).sum();
-    let opts = SolveOptions::default();
+    let opts = SolveOptions {
+        weighting: if mode == Mode::Weighted {
+            calib::Weighting::Covariance
+        } else {
+            calib::Weighting::Equal
+        },
+        ..SolveOptions::default()
+    };
     // Warm-up.
     let cal = calib::solve(&views, camera.image_size, &opts).unwrap();
     let cpu0 = cpu_ns();
@@ -54,10 +77,10 @@ fn bench(label: &str, n_views: usize, reps: usize, weighted: bool) -> f64 {
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
     println!(
         "{label} ({}): {n_views} views, {n_points} points, brown5: {cpu}; wall median {:.2} ms (min {:.2}, p90 {:.2}) over {reps} runs; {} LM iterations, rms {:.3} px",
-        if weighted {
-            "weighted"
-        } else {
-            "equal weights"
+        match mode {
+            Mode::Plain => "equal weights",
+            Mode::Weighted => "weighted",
+            Mode::EqualWithCovariance => "equal weights, covariances: the station's default",
         },
         ms(times[reps / 2]),
         ms(times[0]),
@@ -172,8 +195,9 @@ fn main() {
         (10, reps),
         (50, env_reps.unwrap_or(if quick { 1 } else { 21 })),
     ] {
-        let equal = bench("solve", n_views, reps, false);
-        let weighted = bench("solve", n_views, reps, true);
+        let equal = bench("solve", n_views, reps, Mode::Plain);
+        let weighted = bench("solve", n_views, reps, Mode::Weighted);
+        bench("solve", n_views, reps, Mode::EqualWithCovariance);
         println!(
             "solve, {n_views} views: weighted / equal weights, CPU time per LM iteration: {:.3}",
             weighted / equal
