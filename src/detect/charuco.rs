@@ -715,24 +715,44 @@ pub fn decode(
     quad: &[Vector2<f64>; 4],
     dict: Dictionary,
 ) -> Result<Marker, DecodeMiss> {
-    let n = dict.bits;
-    let cells = n + 2;
+    let cells = dict.bits + 2;
     // The outline as thresholded can be off by a good part of a cell at a blurred, noisy corner:
     // its sides are fitted to sub-pixel first, with the level between the cells' two means as
     // first read, and the cells read again through the fitted outline.
     let first = read_cells(img, quad, cells)?;
+    let (quad, read) =
+        fit_outline(img, quad, &first, cells, MAX_EDGE_SAMPLES).unwrap_or((*quad, first));
+    match_cells(read, &quad, dict)
+}
+
+/// The outline `quad` fitted to sub-pixel ([`refine_quad`], at the level between the dark and light
+/// cells of `first`, its read) and the cells read through it; `None` when either fails.
+fn fit_outline(
+    img: &GrayImage,
+    quad: &[Vector2<f64>; 4],
+    first: &Cells,
+    cells: usize,
+    samples: usize,
+) -> Option<([Vector2<f64>; 4], Cells)> {
     let cell_px = (0..4)
         .map(|k| (quad[(k + 1) % 4] - quad[k]).norm())
         .fold(f64::INFINITY, f64::min)
         / cells as f64;
     let level = (first.m_dark + first.m_light) / 2.0;
-    let (quad, read) = match refine_quad(img, quad, level, cell_px) {
-        Some(q) => match read_cells(img, &q, cells) {
-            Ok(r) => (q, r),
-            Err(_) => (*quad, first),
-        },
-        None => (*quad, first),
-    };
+    let q = refine_quad(img, quad, level, cell_px, samples)?;
+    let read = read_cells(img, &q, cells).ok()?;
+    Some((q, read))
+}
+
+/// Decode cells read through `quad` as a marker of `dict`: the border dark, the data bits the
+/// nearest code within the dictionary's correction bits, in any rotation.
+fn match_cells(
+    read: Cells,
+    quad: &[Vector2<f64>; 4],
+    dict: Dictionary,
+) -> Result<Marker, DecodeMiss> {
+    let n = dict.bits;
+    let cells = n + 2;
     let Cells {
         values,
         t,
@@ -794,6 +814,7 @@ fn refine_quad(
     quad: &[Vector2<f64>; 4],
     level: f64,
     cell_px: f64,
+    max_samples: usize,
 ) -> Option<[Vector2<f64>; 4]> {
     let centre = quad.iter().sum::<Vector2<f64>>() / 4.0;
     let reach = (0.8 * cell_px).clamp(1.0, 4.0);
@@ -806,7 +827,7 @@ fn refine_quad(
         if normal.dot(&((p + q) / 2.0 - centre)) < 0.0 {
             normal = -normal;
         }
-        let samples = (len as usize).clamp(4, 40);
+        let samples = (len as usize).clamp(4, max_samples.max(4));
         let mut pts: Vec<Vector2<f64>> = Vec::with_capacity(samples);
         for i in 0..samples {
             let t = 0.15 + 0.7 * (i as f64 + 0.5) / samples as f64;
@@ -871,6 +892,15 @@ fn refine_quad(
     }
     Some(out)
 }
+
+/// Most lines across a side on which [`refine_quad`] looks for the outline's edge (one per pixel of
+/// the side up to this many).
+pub const MAX_EDGE_SAMPLES: usize = 40;
+
+/// [`MAX_EDGE_SAMPLES`] for the outlines [`predicted_markers`] reads: their sides are fitted only
+/// to read the cells (a misread is retried through the prediction itself), and a fit that finds no
+/// edge, where no marker is, scans every line to its end.
+pub const PREDICTED_EDGE_SAMPLES: usize = 12;
 
 /// What became of one dark region examined as a marker candidate ([`marker_candidates`]).
 #[derive(Debug, Clone, PartialEq)]
@@ -1235,6 +1265,13 @@ pub fn detect(img: &GrayImage, rig: &Rig) -> CharucoDetection {
                 .is_some_and(|c| c.dictionary.bits == m.bits && c.ids.contains(&m.id))
         })
     });
+    for face in &rig.faces {
+        let Some(ch) = &face.charuco else { continue };
+        let Some(&dict) = dicts.iter().find(|d| d.bits == ch.dictionary.bits) else {
+            continue;
+        };
+        markers.extend(predicted_markers(img, face, ch, dict, &markers, &twice));
+    }
     for (fi, face) in rig.faces.iter().enumerate() {
         let Some(ch) = &face.charuco else { continue };
         if let Some(fd) = detect_face(img, face, fi, ch, &markers) {
@@ -1243,6 +1280,199 @@ pub fn detect(img: &GrayImage, rig: &Rig) -> CharucoDetection {
     }
     out.markers = markers;
     out
+}
+
+/// Largest distance, in cells of the `(n + 2)²` grid, of a marker [`predicted_markers`] decodes
+/// from where its decoded neighbours predict each of its corners. A marker of the face in another
+/// square lies a square (`(n + 2)` cells and the white gap) away; the prediction from a neighbour
+/// two squares away is off by a fraction of a cell where a lens bends the face.
+pub const MAX_PREDICTED_MARKER_SHIFT: f64 = 2.0;
+
+/// The markers of `face` that the dark regions missed, read where the face's decoded markers put
+/// them (OpenCV's `refineDetectedMarkers` does the like for boards). Per square of the face whose
+/// marker is not decoded, with at least [`MIN_PREDICTING_MARKERS`] decoded markers within
+/// [`NEIGHBOUR_REACH`] squares (the square with the most of them first): the homography fitted to
+/// all their corners (least squares, [`homography_lsq`]) gives the square's outline; it is read as
+/// [`decode`] reads a region's (its sides fitted to sub-pixel first, [`PREDICTED_EDGE_SAMPLES`]
+/// lines a side), and if that misreads, through the predicted outline itself. A read is taken only
+/// when it decodes, against the whole dictionary as any region's read, to that square's id in the
+/// square's orientation, every corner within [`MAX_PREDICTED_MARKER_SHIFT`] cells of the
+/// prediction: the bits any marker must have, at the one place the face allows them. A marker so
+/// found lends its corners to the predictions of the squares around it; a square is read again
+/// when more markers around it are decoded. `barred` holds ids decoded twice in the frame (not
+/// used).
+///
+/// The regions miss markers whose outline does not come out as one quadrilateral: at a grazing
+/// angle, two-and-a-half pixels a cell, the finer threshold splits a marker into two regions, and
+/// where a face runs into a dark band beyond the board its outline is cut short; the fit of a
+/// region's outline can also pull two corners a good part of a cell away (one side's edge found at
+/// few of its lines), and the read then misses by a few bits (the pyCamSet cube photos: all seven
+/// of OpenCV 4.6's corners that cubecal did not label).
+fn predicted_markers(
+    img: &GrayImage,
+    face: &Face,
+    ch: &Charuco,
+    dict: Dictionary,
+    markers: &[Marker],
+    barred: &[(usize, u32)],
+) -> Vec<Marker> {
+    let (sx, sy) = (face.cols + 1, face.rows + 1);
+    let n = dict.bits;
+    let min_side = (n + 2) as f64 * MIN_CELL_PX;
+    let (w, h) = (f64::from(img.width()), f64::from(img.height()));
+    let mut corners: Vec<Option<[Vector2<f64>; 4]>> = vec![None; sx * sy];
+    let mut ids: Vec<Option<u32>> = vec![None; sx * sy];
+    let mut any = false;
+    for y in 0..sy {
+        for x in 0..sx {
+            let Some(&id) = Charuco::marker_index(face.cols, x, y).and_then(|k| ch.ids.get(k))
+            else {
+                continue;
+            };
+            ids[y * sx + x] = Some(id);
+            if let Some(m) = markers.iter().find(|m| m.bits == n && m.id == id) {
+                corners[y * sx + x] = Some(m.corners);
+                any = true;
+            }
+        }
+    }
+    let mut out: Vec<Marker> = Vec::new();
+    if !any {
+        return out;
+    }
+    // The squares to read: markers not decoded, not barred.
+    let open: Vec<usize> = (0..sx * sy)
+        .filter(|&at| ids[at].is_some_and(|id| corners[at].is_none() && !barred.contains(&(n, id))))
+        .collect();
+    // The decoded markers within [`NEIGHBOUR_REACH`] of a square.
+    fn near(
+        corners: &[Option<[Vector2<f64>; 4]>],
+        (sx, sy): (usize, usize),
+        at: usize,
+    ) -> impl Iterator<Item = (usize, usize)> + '_ {
+        let (x, y) = (at % sx, at / sx);
+        let r = NEIGHBOUR_REACH;
+        (y.saturating_sub(r)..(y + r + 1).min(sy))
+            .flat_map(move |v| (x.saturating_sub(r)..(x + r + 1).min(sx)).map(move |u| (u, v)))
+            .filter(move |&(u, v)| corners[v * sx + u].is_some())
+    }
+    // Per square, how many neighbours predicted it when it was last read (read again only when
+    // more do).
+    let mut tried = vec![0usize; sx * sy];
+    loop {
+        // The open square with the most decoded neighbours (the best prediction) first.
+        let best = open
+            .iter()
+            .filter(|&&at| corners[at].is_none())
+            .map(|&at| (near(&corners, (sx, sy), at).count(), at))
+            .filter(|&(count, at)| count >= MIN_PREDICTING_MARKERS && count > tried[at])
+            .max_by_key(|&(count, at)| (count, std::cmp::Reverse(at)));
+        let Some((count, at)) = best else {
+            return out;
+        };
+        tried[at] = count;
+        let (x, y) = (at % sx, at / sx);
+        let Some(id) = ids[at] else { continue };
+        let pairs: Vec<(Vector2<f64>, Vector2<f64>)> = near(&corners, (sx, sy), at)
+            .flat_map(|(u, v)| {
+                let c = corners[v * sx + u].into_iter().flatten();
+                marker_board_corners(face, ch, (u, v)).into_iter().zip(c)
+            })
+            .collect();
+        let board = marker_board_corners(face, ch, (x, y));
+        let Some(hom) = homography_lsq(&pairs) else {
+            continue;
+        };
+        let Some(pred) = board
+            .iter()
+            .map(|&b| apply(&hom, b))
+            .collect::<Option<Vec<_>>>()
+            .and_then(|v| <[Vector2<f64>; 4]>::try_from(v).ok())
+        else {
+            continue;
+        };
+        let sides = (0..4).map(|k| (pred[(k + 1) % 4] - pred[k]).norm());
+        let side = sides.fold(f64::INFINITY, f64::min);
+        if !(side >= min_side)
+            || pred
+                .iter()
+                .any(|p| !(p.x >= 1.0 && p.y >= 1.0 && p.x <= w - 2.0 && p.y <= h - 2.0))
+        {
+            continue;
+        }
+        let centre = pred.iter().sum::<Vector2<f64>>() / 4.0;
+        if markers
+            .iter()
+            .chain(&out)
+            .any(|m| inside_convex(&m.corners, centre))
+        {
+            continue;
+        }
+        let tol = MAX_PREDICTED_MARKER_SHIFT * side / (n + 2) as f64;
+        let expected =
+            |m: &Marker| m.id == id && (0..4).all(|k| (m.corners[k] - pred[k]).norm() <= tol);
+        // Through the fitted outline, as a region's; if that misreads, through the prediction
+        // itself (its cells read already, for the fit's level).
+        let cells = n + 2;
+        let Ok(first) = read_cells(img, &pred, cells) else {
+            continue;
+        };
+        let fitted = fit_outline(img, &pred, &first, cells, PREDICTED_EDGE_SAMPLES)
+            .and_then(|(q, read)| match_cells(read, &q, dict).ok())
+            .filter(expected);
+        let found = fitted.or_else(|| match_cells(first, &pred, dict).ok().filter(expected));
+        if let Some(m) = found {
+            tracing::debug!(id, "marker read where its neighbours predict it");
+            corners[at] = Some(m.corners);
+            out.push(m);
+        }
+    }
+}
+
+/// How far, in squares along a row or column, the decoded markers reach whose corners give
+/// [`predicted_markers`] a marker's outline: two, the markers diagonal to it and the next along its
+/// row and column, and those beyond them.
+pub const NEIGHBOUR_REACH: usize = 2;
+
+/// Fewest decoded markers within [`NEIGHBOUR_REACH`] for [`predicted_markers`] to read a square: one
+/// marker's homography, carried a square or two beyond it, misses by a cell or more at a grazing
+/// angle (the pyCamSet cube photos: 4 px at 2.7 px a cell), and a corner needs two markers anyway.
+pub const MIN_PREDICTING_MARKERS: usize = 2;
+
+/// The homography taking each pair's first point to its second, least squares (DLT with h₃₃ = 1 on
+/// points moved to their centroid and scaled to a mean distance of √2: the normal equations, 8 × 8);
+/// `None` for fewer than four pairs or a degenerate fit.
+fn homography_lsq(pairs: &[(Vector2<f64>, Vector2<f64>)]) -> Option<Matrix3<f64>> {
+    if pairs.len() < 4 {
+        return None;
+    }
+    let norm = |pts: &mut dyn Iterator<Item = Vector2<f64>>| {
+        let v: Vec<Vector2<f64>> = pts.collect();
+        let c = v.iter().sum::<Vector2<f64>>() / v.len() as f64;
+        let d = v.iter().map(|p| (p - c).norm()).sum::<f64>() / v.len() as f64;
+        let s = if d > 0.0 {
+            std::f64::consts::SQRT_2 / d
+        } else {
+            1.0
+        };
+        Matrix3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0)
+    };
+    let ta = norm(&mut pairs.iter().map(|p| p.0));
+    let tb = norm(&mut pairs.iter().map(|p| p.1));
+    let mut ata = SMatrix::<f64, 8, 8>::zeros();
+    let mut atb = SVector::<f64, 8>::zeros();
+    for &(a, b) in pairs {
+        let (a, b) = (apply(&ta, a)?, apply(&tb, b)?);
+        let (x, y, u, v) = (a.x, a.y, b.x, b.y);
+        let r1 = SVector::<f64, 8>::from_row_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]);
+        let r2 = SVector::<f64, 8>::from_row_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]);
+        ata += r1 * r1.transpose() + r2 * r2.transpose();
+        atb += r1 * u + r2 * v;
+    }
+    let e = ata.cholesky()?.solve(&atb);
+    let hn = Matrix3::new(e[0], e[1], e[2], e[3], e[4], e[5], e[6], e[7], 1.0);
+    let h = tb.try_inverse()? * hn * ta;
+    (h[(2, 2)].abs() > 1e-12).then(|| h / h[(2, 2)])
 }
 
 fn detect_face(
