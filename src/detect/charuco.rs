@@ -721,31 +721,33 @@ pub fn decode(
     // first read, and the cells read again through the fitted outline.
     let first = read_cells(img, quad, cells)?;
     let (quad, read) =
-        fit_outline(img, quad, &first, cells, MAX_EDGE_SAMPLES).unwrap_or((*quad, first));
+        fit_outline::<MAX_EDGE_SAMPLES>(img, quad, &first, cells).unwrap_or((*quad, first));
     match_cells(read, &quad, dict)
 }
 
 /// The outline `quad` fitted to sub-pixel ([`refine_quad`], at the level between the dark and light
 /// cells of `first`, its read) and the cells read through it; `None` when either fails.
-fn fit_outline(
+/// `SAMPLES`: the most lines across a side ([`refine_quad`]).
+#[inline]
+fn fit_outline<const SAMPLES: usize>(
     img: &GrayImage,
     quad: &[Vector2<f64>; 4],
     first: &Cells,
     cells: usize,
-    samples: usize,
 ) -> Option<([Vector2<f64>; 4], Cells)> {
     let cell_px = (0..4)
         .map(|k| (quad[(k + 1) % 4] - quad[k]).norm())
         .fold(f64::INFINITY, f64::min)
         / cells as f64;
     let level = (first.m_dark + first.m_light) / 2.0;
-    let q = refine_quad(img, quad, level, cell_px, samples)?;
+    let q = refine_quad::<SAMPLES>(img, quad, level, cell_px)?;
     let read = read_cells(img, &q, cells).ok()?;
     Some((q, read))
 }
 
 /// Decode cells read through `quad` as a marker of `dict`: the border dark, the data bits the
 /// nearest code within the dictionary's correction bits, in any rotation.
+#[inline]
 fn match_cells(
     read: Cells,
     quad: &[Vector2<f64>; 4],
@@ -809,12 +811,11 @@ fn match_cells(
 /// 0.8 of a cell of the thresholded outline; a straight line fitted to those points per side; the
 /// corners where neighbouring lines meet. `None` (keep the outline as found) when a side has too
 /// few crossings.
-fn refine_quad(
+fn refine_quad<const MAX_SAMPLES: usize>(
     img: &GrayImage,
     quad: &[Vector2<f64>; 4],
     level: f64,
     cell_px: f64,
-    max_samples: usize,
 ) -> Option<[Vector2<f64>; 4]> {
     let centre = quad.iter().sum::<Vector2<f64>>() / 4.0;
     let reach = (0.8 * cell_px).clamp(1.0, 4.0);
@@ -827,7 +828,7 @@ fn refine_quad(
         if normal.dot(&((p + q) / 2.0 - centre)) < 0.0 {
             normal = -normal;
         }
-        let samples = (len as usize).clamp(4, max_samples.max(4));
+        let samples = (len as usize).clamp(4, MAX_SAMPLES.max(4));
         let mut pts: Vec<Vector2<f64>> = Vec::with_capacity(samples);
         for i in 0..samples {
             let t = 0.15 + 0.7 * (i as f64 + 0.5) / samples as f64;
@@ -1017,7 +1018,17 @@ pub fn marker_candidates(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Candidate
             .take_while(|s| s[0] <= b[0] + tol)
             .any(|s| (1..4).all(|k| s[k].abs_diff(b[k]) <= tol))
     };
-    let crop = image::imageops::crop_imm(img, rx0, ry0, rx1 - rx0, ry1 - ry0).to_image();
+    // The rectangle copied row by row (`crop_imm(…).to_image()` copies pixel by pixel, and where
+    // the compiler does not inline it, costs as much as the threshold of the rectangle).
+    let row_px = img.width() as usize;
+    let (cx0, cx1) = (rx0 as usize, rx1 as usize);
+    let mut pixels = Vec::with_capacity((cx1 - cx0) * (ry1 - ry0) as usize);
+    for y in ry0 as usize..ry1 as usize {
+        pixels.extend_from_slice(&img.as_raw()[y * row_px + cx0..y * row_px + cx1]);
+    }
+    let Some(crop) = GrayImage::from_raw(rx1 - rx0, ry1 - ry0, pixels) else {
+        return out;
+    };
     let (cw, ch) = (crop.width(), crop.height());
     for mut region in regions::<FINE_BOX_PX>(&crop, min_side) {
         let [x0, y0, x1, y1] = region.bbox;
@@ -1417,7 +1428,7 @@ fn predicted_markers(
         let Ok(first) = read_cells(img, &pred, cells) else {
             continue;
         };
-        let fitted = fit_outline(img, &pred, &first, cells, PREDICTED_EDGE_SAMPLES)
+        let fitted = fit_outline::<PREDICTED_EDGE_SAMPLES>(img, &pred, &first, cells)
             .and_then(|(q, read)| match_cells(read, &q, dict).ok())
             .filter(expected);
         let found = fitted.or_else(|| match_cells(first, &pred, dict).ok().filter(expected));
