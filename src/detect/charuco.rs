@@ -1367,6 +1367,23 @@ fn predicted_markers(
             .flat_map(move |v| (x.saturating_sub(r)..(x + r + 1).min(sx)).map(move |u| (u, v)))
             .filter(move |&(u, v)| corners[v * sx + u].is_some())
     }
+    // Whether a marker diagonal to the square is decoded: the two share a corner, which the
+    // square's marker, read, labels (a square without one waits until one is read).
+    fn diagonal_decoded(
+        corners: &[Option<[Vector2<f64>; 4]>],
+        (sx, sy): (usize, usize),
+        at: usize,
+    ) -> bool {
+        let (x, y) = (at % sx, at / sx);
+        [(-1, -1), (1, -1), (-1, 1), (1, 1)]
+            .iter()
+            .any(
+                |&(dx, dy)| match (x.checked_add_signed(dx), y.checked_add_signed(dy)) {
+                    (Some(u), Some(v)) if u < sx && v < sy => corners[v * sx + u].is_some(),
+                    _ => false,
+                },
+            )
+    }
     // Per square, how many neighbours predicted it when it was last read (read again only when
     // more do).
     let mut tried = vec![0usize; sx * sy];
@@ -1374,7 +1391,7 @@ fn predicted_markers(
         // The open square with the most decoded neighbours (the best prediction) first.
         let best = open
             .iter()
-            .filter(|&&at| corners[at].is_none())
+            .filter(|&&at| corners[at].is_none() && diagonal_decoded(&corners, (sx, sy), at))
             .map(|&at| (near(&corners, (sx, sy), at).count(), at))
             .filter(|&(count, at)| count >= MIN_PREDICTING_MARKERS && count > tried[at])
             .max_by_key(|&(count, at)| (count, std::cmp::Reverse(at)));
