@@ -20,15 +20,27 @@
 //!    whose hull the quadrilateral does not fill to [`MIN_QUAD_FILL`] is no marker.
 //! 3. **Bits.** The quadrilateral's sides are first fitted to sub-pixel (the outline as thresholded
 //!    can miss a blurred corner by a good part of a cell). Through the homography of the
-//!    quadrilateral, every cell of an `(n + 2)²` grid is sampled (the mean of 3 × 3 bilinear samples in its middle half) for each marker size `n` the
-//!    rig uses; the cells split into dark and light by two-means. The border cells must be dark (at
+//!    quadrilateral, every cell of an `(n + 2)²` grid is sampled (the mean of 3 × 3 bilinear
+//!    samples in its middle half) for each marker size `n` the rig uses; the cells split into dark and light by two-means. The border cells must be dark (at
 //!    most [`MAX_BORDER_ERROR_RATE`] of them light, OpenCV's default); the data bits, in each of the
 //!    four rotations, are matched against every marker of the dictionary by Hamming distance (the
 //!    read rotated, four times, rather than each code of the dictionary), and a
 //!    marker is decoded when the nearest is within the dictionary's `maxCorrectionBits` (the bits
 //!    corrected are reported per marker, [`Marker::corrected_bits`]). A marker whose id is not on any
 //!    face, or whose id is decoded twice in the frame, is dropped.
-//! 4. **Corners.** Every inner corner of a ChArUco board touches two white squares, each holding a
+//! 4. **Markers the regions missed** (`predicted_markers`). A marker whose outline is no
+//!    quadrilateral of its own (at a grazing angle, two-and-a-half pixels a cell, the fine threshold
+//!    splits it in two; where the face runs into a dark band its outline is cut short) or whose
+//!    fitted outline misreads by a few bits (one side's edge found at few of its lines) is read
+//!    where its face's decoded markers put it: per square of a face whose marker is not decoded,
+//!    beside a decoded diagonal neighbour and with at least [`MIN_PREDICTING_MARKERS`] decoded
+//!    markers within [`NEIGHBOUR_REACH`] squares (the square with the most first), the homography
+//!    fitted to all their corners (least squares) gives its outline, read as in step 3 (the sides
+//!    fitted first, through the prediction itself if that misreads). The read is taken only when
+//!    it decodes, against the whole dictionary as any region's, to that square's id in that
+//!    square's orientation, each corner within [`MAX_PREDICTED_MARKER_SHIFT`] cells of the
+//!    prediction. A marker so found lends its corners to the squares around it in turn.
+//! 5. **Corners.** Every inner corner of a ChArUco board touches two white squares, each holding a
 //!    marker. A corner is labelled only when both are decoded and the homographies of both put the
 //!    corner at the same place (within [`MAX_PREDICTION_DISAGREEMENT`] of a square): one wrongly
 //!    decoded marker cannot label a corner. (OpenCV's `CharucoDetector` also needs two markers by
@@ -43,7 +55,8 @@
 //!    finds no X-junction there, or is pulled away, is started again a pixel away (`fit_corner`); a
 //!    corner whose fits fail is not labelled.
 //!
-//! Everything runs on the full-resolution frame; no part of a face needs any other part to be seen.
+//! Everything runs on the full-resolution frame; no part of a face needs any other part to be seen,
+//! but for the markers of step 4, read only beside markers already decoded.
 //!
 //! ## Speed
 //! Issue 33 asks for 10 ms per 1280 × 960 frame. `cargo bench --bench charuco` (the ChArUco cube in
@@ -56,7 +69,7 @@
 //! decoding markers 126.4 M → 51.8 M, `detect` 129.3 M → 55.8 M. The changes to finding markers
 //! reorder no arithmetic that reaches a result: every marker, and every corner labelled before,
 //! is the same to the last digit the bench prints (`CUBECAL_BENCH_DUMP` of both builds compared;
-//! the realistic look gains 17 corners from the fit's restart, step 4). What made the difference:
+//! the realistic look gains 17 corners from the fit's restart, step 5). What made the difference:
 //! the threshold's sums vectorised (per-column running sums, a u16 comparison), run-length
 //! labelling instead of a per-pixel flood fill, the hull without a sort, the dictionary matched
 //! against four rotations of the read instead of every code rotated four times, and bilinear
@@ -74,6 +87,19 @@
 //! 8.97 ms for the build before it (27 Nov 2026, two runs of each alternately, the same frames
 //! read from PNG); it fits 65 and 161 corners of the bench's frames where that build fitted 35 and
 //! 134.
+//!
+//! Reading the markers the regions miss (step 4) costs 1.05–1.09× on the realistic look and
+//! 1.22–1.29× on the hard one: `cargo bench --bench charuco`, 27 Nov 2026, four runs alternating with
+//! the bench built from 74ce6fe (the same frames read from PNG, `CUBECAL_BENCH_FRAMES`), median
+//! `detect` per frame 7.46–8.3 ms hard and 9.06–9.95 ms realistic against 6.1–6.4 and 8.6–9.1 ms
+//! (the lower figures at load average 3, the higher at 6); it labels 118 and 173 corners of the
+//! bench's frames where that build labels 65 and 161, every corner that build labels at the same
+//! place to the last digit. Per frame up to about 30 squares are read on the hard look and 15 on
+//! the realistic one, each a read through the prediction, the outline's fit and a read through it
+//! ([`PREDICTED_EDGE_SAMPLES`] lines a side; with the regions' 40 the reads took 1.3–1.45× as
+//! long), and the corners the new markers add are fitted. Its module grown, the compiler stopped inlining the pixel-by-pixel copy of
+//! the second pass's rectangle (`crop_imm(…).to_image()`, ~120 M instructions over the bench's
+//! frames); it is copied row by row now, finding markers as fast as before.
 //!
 //! Written here because no well-kept crate detects OpenCV's ArUco markers (see [`crate::rig::charuco`]).
 
@@ -894,11 +920,11 @@ fn refine_quad<const MAX_SAMPLES: usize>(
     Some(out)
 }
 
-/// Most lines across a side on which [`refine_quad`] looks for the outline's edge (one per pixel of
+/// Most lines across a side on which `refine_quad` looks for the outline's edge (one per pixel of
 /// the side up to this many).
 pub const MAX_EDGE_SAMPLES: usize = 40;
 
-/// [`MAX_EDGE_SAMPLES`] for the outlines [`predicted_markers`] reads: their sides are fitted only
+/// [`MAX_EDGE_SAMPLES`] for the outlines `predicted_markers` reads: their sides are fitted only
 /// to read the cells (a misread is retried through the prediction itself), and a fit that finds no
 /// edge, where no marker is, scans every line to its end.
 pub const PREDICTED_EDGE_SAMPLES: usize = 12;
@@ -1293,7 +1319,7 @@ pub fn detect(img: &GrayImage, rig: &Rig) -> CharucoDetection {
     out
 }
 
-/// Largest distance, in cells of the `(n + 2)²` grid, of a marker [`predicted_markers`] decodes
+/// Largest distance, in cells of the `(n + 2)²` grid, of a marker `predicted_markers` decodes
 /// from where its decoded neighbours predict each of its corners. A marker of the face in another
 /// square lies a square (`(n + 2)` cells and the white gap) away; the prediction from a neighbour
 /// two squares away is off by a fraction of a cell where a lens bends the face.
@@ -1301,8 +1327,9 @@ pub const MAX_PREDICTED_MARKER_SHIFT: f64 = 2.0;
 
 /// The markers of `face` that the dark regions missed, read where the face's decoded markers put
 /// them (OpenCV's `refineDetectedMarkers` does the like for boards). Per square of the face whose
-/// marker is not decoded, with at least [`MIN_PREDICTING_MARKERS`] decoded markers within
-/// [`NEIGHBOUR_REACH`] squares (the square with the most of them first): the homography fitted to
+/// marker is not decoded, beside a decoded diagonal neighbour (a marker labels corners only with
+/// those) and with at least [`MIN_PREDICTING_MARKERS`] decoded markers within [`NEIGHBOUR_REACH`]
+/// squares (the square with the most of them first): the homography fitted to
 /// all their corners (least squares, [`homography_lsq`]) gives the square's outline; it is read as
 /// [`decode`] reads a region's (its sides fitted to sub-pixel first, [`PREDICTED_EDGE_SAMPLES`]
 /// lines a side), and if that misreads, through the predicted outline itself. A read is taken only
@@ -1458,11 +1485,11 @@ fn predicted_markers(
 }
 
 /// How far, in squares along a row or column, the decoded markers reach whose corners give
-/// [`predicted_markers`] a marker's outline: two, the markers diagonal to it and the next along its
+/// `predicted_markers` a marker's outline: two, the markers diagonal to it and the next along its
 /// row and column, and those beyond them.
 pub const NEIGHBOUR_REACH: usize = 2;
 
-/// Fewest decoded markers within [`NEIGHBOUR_REACH`] for [`predicted_markers`] to read a square: one
+/// Fewest decoded markers within [`NEIGHBOUR_REACH`] for `predicted_markers` to read a square: one
 /// marker's homography, carried a square or two beyond it, misses by a cell or more at a grazing
 /// angle (the pyCamSet cube photos: 4 px at 2.7 px a cell), and a corner needs two markers anyway.
 pub const MIN_PREDICTING_MARKERS: usize = 2;
