@@ -543,3 +543,97 @@ fn random_bit_flips_never_label_wrong() {
         "nothing labelled on the flipped boards"
     );
 }
+
+/// Markers read where their decoded neighbours predict them (`charuco` step 4): marker 10 of a
+/// face, its black border cut into four by two light lines (its outline no region of its own), is
+/// read where the markers around it put it and its four corners labelled; with the bits of an id
+/// on no face in its place, none of the four is labelled, and no corner is labelled wrong.
+#[test]
+fn cut_marker_read_where_its_neighbours_put_it_with_its_own_bits_only() {
+    let (rig, _) =
+        Rig::from_toml_str(&rig_text(), "charuco_cube.toml").unwrap_or_else(|e| panic!("{e}"));
+    let face = &rig.faces[0];
+    let ch = face
+        .charuco
+        .as_ref()
+        .unwrap_or_else(|| panic!("no ChArUco face"));
+    let n = ch.dictionary.bits;
+    let stranger = 200u32;
+    assert!(
+        rig.faces.iter().all(|f| f
+            .charuco
+            .as_ref()
+            .is_none_or(|c| !c.ids.contains(&stranger))),
+        "id {stranger} is on a face"
+    );
+    // Marker 10 sits in square (5, 2); 56 px squares after a 56 px margin, 6 px cells from 7 px in.
+    let (k, id) = (10usize, ch.ids[10]);
+    let (cell, x0, y0) = (6u32, 56 + 5 * 56 + 7, 56 + 2 * 56 + 7);
+    let cut = |img: &mut image::GrayImage| {
+        // 2 px light lines on the cells' boundaries 3 | 4, clear of the cells' middle halves.
+        for t in 0..7 * cell + 6 {
+            for d in 0..2 {
+                let (a, b) = (x0 + 3 * cell - 1 + d, y0 + t - 3);
+                img.put_pixel(a, b, image::Luma([235]));
+                img.put_pixel(b - y0 + x0, a - x0 + y0, image::Luma([235]));
+            }
+        }
+    };
+    let truth = |cid: usize| -> [f64; 2] {
+        let (x, y) = ((cid % face.cols) as f64, (cid / face.cols) as f64);
+        [56.0 + (x + 1.0) * 56.0 - 0.5, 56.0 + (y + 1.0) * 56.0 - 0.5]
+    };
+    let beside = [11usize, 12, 18, 19];
+    let mut finder = CornerFinder::new().unwrap_or_else(|e| panic!("{e}"));
+    for replaced in [false, true] {
+        let own = ch.dictionary.codes()[id as usize];
+        let swap = ch.dictionary.codes()[stranger as usize];
+        let mut img = draw_face_with_flips(face, |m, bits| {
+            if replaced && m == k {
+                (0..bits).filter(|b| ((own ^ swap) >> b) & 1 == 1).collect()
+            } else {
+                Vec::new()
+            }
+        });
+        cut(&mut img);
+        let regions = cubecal::detect::charuco::find_markers(&img, &[ch.dictionary]);
+        assert!(
+            regions.iter().all(|m| m.id != id && m.id != stranger),
+            "the cut marker decoded from its region: the test shows nothing"
+        );
+        let det = detect(&mut finder, &img, &rig).unwrap_or_else(|e| panic!("{e}"));
+        let mut labelled = Vec::new();
+        for f in &det.faces {
+            for c in &f.corners {
+                let cid = opencv_corner_id(face.cols, face.rows, c.row, c.col);
+                let t = truth(cid);
+                let off = ((c.uv.x - t[0]).powi(2) + (c.uv.y - t[1]).powi(2)).sqrt();
+                assert!(
+                    f.face == 0 && off < 1.0,
+                    "corner {cid} of face {} labelled {off:.1} px from its place",
+                    f.face
+                );
+                labelled.push(cid);
+            }
+        }
+        let n_beside = beside.iter().filter(|c| labelled.contains(c)).count();
+        eprintln!(
+            "cut marker{}: {} corners labelled, {n_beside} of the 4 beside it ({n}×{n} bits)",
+            if replaced {
+                " with another id's bits"
+            } else {
+                ""
+            },
+            labelled.len()
+        );
+        if replaced {
+            assert_eq!(
+                n_beside, 0,
+                "a corner beside the other id's marker labelled"
+            );
+            assert_eq!(labelled.len(), face.cols * face.rows - 4);
+        } else {
+            assert_eq!(labelled.len(), face.cols * face.rows, "every corner");
+        }
+    }
+}

@@ -20,15 +20,33 @@
 //!    whose hull the quadrilateral does not fill to [`MIN_QUAD_FILL`] is no marker.
 //! 3. **Bits.** The quadrilateral's sides are first fitted to sub-pixel (the outline as thresholded
 //!    can miss a blurred corner by a good part of a cell). Through the homography of the
-//!    quadrilateral, every cell of an `(n + 2)²` grid is sampled (the mean of 3 × 3 bilinear samples in its middle half) for each marker size `n` the
-//!    rig uses; the cells split into dark and light by two-means. The border cells must be dark (at
+//!    quadrilateral, every cell of an `(n + 2)²` grid is sampled (the mean of 3 × 3 bilinear
+//!    samples in its middle half) for each marker size `n` the rig uses; the cells split into dark and light by two-means. The border cells must be dark (at
 //!    most [`MAX_BORDER_ERROR_RATE`] of them light, OpenCV's default); the data bits, in each of the
 //!    four rotations, are matched against every marker of the dictionary by Hamming distance (the
 //!    read rotated, four times, rather than each code of the dictionary), and a
 //!    marker is decoded when the nearest is within the dictionary's `maxCorrectionBits` (the bits
 //!    corrected are reported per marker, [`Marker::corrected_bits`]). A marker whose id is not on any
 //!    face, or whose id is decoded twice in the frame, is dropped.
-//! 4. **Corners.** Every inner corner of a ChArUco board touches two white squares, each holding a
+//! 4. **Markers the regions missed** (`predicted_markers`). A marker whose outline is no
+//!    quadrilateral of its own (at a grazing angle, two-and-a-half pixels a cell, the fine threshold
+//!    splits it in two; where the face runs into a dark band its outline is cut short) or whose
+//!    fitted outline misreads by a few bits (one side's edge found at few of its lines) is read
+//!    where its face's decoded markers put it: per square of a face whose marker is not decoded,
+//!    beside a decoded diagonal neighbour and with at least [`MIN_PREDICTING_MARKERS`] decoded
+//!    markers within [`NEIGHBOUR_REACH`] squares (the square with the most first), the homography
+//!    fitted to all their corners (least squares) gives its outline, read as in step 3 (the sides
+//!    fitted first, through the prediction itself if that misreads). The read is taken only when
+//!    it decodes, against the whole dictionary as any region's, to that square's id in that
+//!    square's orientation, each corner within [`MAX_PREDICTED_MARKER_SHIFT`] cells of the
+//!    prediction. A marker so found lends its corners to the squares around it in turn.
+//!    Measured: the pyCamSet cube photos 2179 → 2186 of OpenCV 4.6's 2186 corners labelled (2421 →
+//!    2558 in all, none differently; `CUBECAL_REQUIRE_TOOLS=1 cargo test --release --test
+//!    detect_charuco_real -- --nocapture`); `cargo run --release --example charuco_eval --
+//!    realistic 24` (and `hard 24`): 2249 → 2342 corners (509 → 826), no wrong label, every corner
+//!    labelled before at the same place to the last digit; RMS over all 0.0189 → 0.0208 px
+//!    (0.0862 → 0.1051 px), the corners added, on markers the regions cannot read, 0.047 px (0.130 px).
+//! 5. **Corners.** Every inner corner of a ChArUco board touches two white squares, each holding a
 //!    marker. A corner is labelled only when both are decoded and the homographies of both put the
 //!    corner at the same place (within [`MAX_PREDICTION_DISAGREEMENT`] of a square): one wrongly
 //!    decoded marker cannot label a corner. (OpenCV's `CharucoDetector` also needs two markers by
@@ -43,7 +61,8 @@
 //!    finds no X-junction there, or is pulled away, is started again a pixel away (`fit_corner`); a
 //!    corner whose fits fail is not labelled.
 //!
-//! Everything runs on the full-resolution frame; no part of a face needs any other part to be seen.
+//! Everything runs on the full-resolution frame; no part of a face needs any other part to be seen,
+//! but for the markers of step 4, read only beside markers already decoded.
 //!
 //! ## Speed
 //! Issue 33 asks for 10 ms per 1280 × 960 frame. `cargo bench --bench charuco` (the ChArUco cube in
@@ -56,7 +75,7 @@
 //! decoding markers 126.4 M → 51.8 M, `detect` 129.3 M → 55.8 M. The changes to finding markers
 //! reorder no arithmetic that reaches a result: every marker, and every corner labelled before,
 //! is the same to the last digit the bench prints (`CUBECAL_BENCH_DUMP` of both builds compared;
-//! the realistic look gains 17 corners from the fit's restart, step 4). What made the difference:
+//! the realistic look gains 17 corners from the fit's restart, step 5). What made the difference:
 //! the threshold's sums vectorised (per-column running sums, a u16 comparison), run-length
 //! labelling instead of a per-pixel flood fill, the hull without a sort, the dictionary matched
 //! against four rotations of the read instead of every code rotated four times, and bilinear
@@ -74,6 +93,20 @@
 //! 8.97 ms for the build before it (27 Nov 2026, two runs of each alternately, the same frames
 //! read from PNG); it fits 65 and 161 corners of the bench's frames where that build fitted 35 and
 //! 134.
+//!
+//! Reading the markers the regions miss (step 4) costs 1.055–1.09× on the realistic look and
+//! 1.24–1.37× on the hard one (medians of three sessions of four runs alternating with the bench
+//! built from 74ce6fe, `cargo bench --bench charuco`, the same frames read from PNG,
+//! `CUBECAL_BENCH_FRAMES`, 27 Nov 2026, load average 3–6): median `detect` per frame 9.06–9.95 ms
+//! realistic and 7.46–8.57 ms hard against 8.6–9.13 and 6.1–6.45 ms; it labels 118 and 173 corners
+//! of the bench's frames where that build labels 65 and 161, every corner that build labels at the
+//! same place to the last digit. Per frame up to about 30 squares are read on the hard look and 15
+//! on the realistic one, each a read through the prediction, the outline's fit and a read through
+//! it ([`PREDICTED_EDGE_SAMPLES`] lines a side; with the regions' 40 the reads took 1.3–1.45× as
+//! long), and the corners the new markers add are fitted. Its module grown, the compiler stopped
+//! inlining the pixel-by-pixel copy of the second pass's rectangle (`crop_imm(…).to_image()`, some
+//! 120 million instructions over the bench's frames); it is copied row by row now, finding markers
+//! as fast as before.
 //!
 //! Written here because no well-kept crate detects OpenCV's ArUco markers (see [`crate::rig::charuco`]).
 
@@ -715,24 +748,46 @@ pub fn decode(
     quad: &[Vector2<f64>; 4],
     dict: Dictionary,
 ) -> Result<Marker, DecodeMiss> {
-    let n = dict.bits;
-    let cells = n + 2;
+    let cells = dict.bits + 2;
     // The outline as thresholded can be off by a good part of a cell at a blurred, noisy corner:
     // its sides are fitted to sub-pixel first, with the level between the cells' two means as
     // first read, and the cells read again through the fitted outline.
     let first = read_cells(img, quad, cells)?;
+    let (quad, read) =
+        fit_outline::<MAX_EDGE_SAMPLES>(img, quad, &first, cells).unwrap_or((*quad, first));
+    match_cells(read, &quad, dict)
+}
+
+/// The outline `quad` fitted to sub-pixel ([`refine_quad`], at the level between the dark and light
+/// cells of `first`, its read) and the cells read through it; `None` when either fails.
+/// `SAMPLES`: the most lines across a side ([`refine_quad`]).
+#[inline]
+fn fit_outline<const SAMPLES: usize>(
+    img: &GrayImage,
+    quad: &[Vector2<f64>; 4],
+    first: &Cells,
+    cells: usize,
+) -> Option<([Vector2<f64>; 4], Cells)> {
     let cell_px = (0..4)
         .map(|k| (quad[(k + 1) % 4] - quad[k]).norm())
         .fold(f64::INFINITY, f64::min)
         / cells as f64;
     let level = (first.m_dark + first.m_light) / 2.0;
-    let (quad, read) = match refine_quad(img, quad, level, cell_px) {
-        Some(q) => match read_cells(img, &q, cells) {
-            Ok(r) => (q, r),
-            Err(_) => (*quad, first),
-        },
-        None => (*quad, first),
-    };
+    let q = refine_quad::<SAMPLES>(img, quad, level, cell_px)?;
+    let read = read_cells(img, &q, cells).ok()?;
+    Some((q, read))
+}
+
+/// Decode cells read through `quad` as a marker of `dict`: the border dark, the data bits the
+/// nearest code within the dictionary's correction bits, in any rotation.
+#[inline]
+fn match_cells(
+    read: Cells,
+    quad: &[Vector2<f64>; 4],
+    dict: Dictionary,
+) -> Result<Marker, DecodeMiss> {
+    let n = dict.bits;
+    let cells = n + 2;
     let Cells {
         values,
         t,
@@ -789,7 +844,7 @@ pub fn decode(
 /// 0.8 of a cell of the thresholded outline; a straight line fitted to those points per side; the
 /// corners where neighbouring lines meet. `None` (keep the outline as found) when a side has too
 /// few crossings.
-fn refine_quad(
+fn refine_quad<const MAX_SAMPLES: usize>(
     img: &GrayImage,
     quad: &[Vector2<f64>; 4],
     level: f64,
@@ -806,7 +861,7 @@ fn refine_quad(
         if normal.dot(&((p + q) / 2.0 - centre)) < 0.0 {
             normal = -normal;
         }
-        let samples = (len as usize).clamp(4, 40);
+        let samples = (len as usize).clamp(4, MAX_SAMPLES.max(4));
         let mut pts: Vec<Vector2<f64>> = Vec::with_capacity(samples);
         for i in 0..samples {
             let t = 0.15 + 0.7 * (i as f64 + 0.5) / samples as f64;
@@ -871,6 +926,15 @@ fn refine_quad(
     }
     Some(out)
 }
+
+/// Most lines across a side on which `refine_quad` looks for the outline's edge (one per pixel of
+/// the side up to this many).
+pub const MAX_EDGE_SAMPLES: usize = 40;
+
+/// [`MAX_EDGE_SAMPLES`] for the outlines `predicted_markers` reads: their sides are fitted only
+/// to read the cells (a misread is retried through the prediction itself), and a fit that finds no
+/// edge, where no marker is, scans every line to its end.
+pub const PREDICTED_EDGE_SAMPLES: usize = 12;
 
 /// What became of one dark region examined as a marker candidate ([`marker_candidates`]).
 #[derive(Debug, Clone, PartialEq)]
@@ -987,7 +1051,17 @@ pub fn marker_candidates(img: &GrayImage, dicts: &[Dictionary]) -> Vec<Candidate
             .take_while(|s| s[0] <= b[0] + tol)
             .any(|s| (1..4).all(|k| s[k].abs_diff(b[k]) <= tol))
     };
-    let crop = image::imageops::crop_imm(img, rx0, ry0, rx1 - rx0, ry1 - ry0).to_image();
+    // The rectangle copied row by row (`crop_imm(…).to_image()` copies pixel by pixel, and where
+    // the compiler does not inline it, costs as much as the threshold of the rectangle).
+    let row_px = img.width() as usize;
+    let (cx0, cx1) = (rx0 as usize, rx1 as usize);
+    let mut pixels = Vec::with_capacity((cx1 - cx0) * (ry1 - ry0) as usize);
+    for y in ry0 as usize..ry1 as usize {
+        pixels.extend_from_slice(&img.as_raw()[y * row_px + cx0..y * row_px + cx1]);
+    }
+    let Some(crop) = GrayImage::from_raw(rx1 - rx0, ry1 - ry0, pixels) else {
+        return out;
+    };
     let (cw, ch) = (crop.width(), crop.height());
     for mut region in regions::<FINE_BOX_PX>(&crop, min_side) {
         let [x0, y0, x1, y1] = region.bbox;
@@ -1235,6 +1309,13 @@ pub fn detect(img: &GrayImage, rig: &Rig) -> CharucoDetection {
                 .is_some_and(|c| c.dictionary.bits == m.bits && c.ids.contains(&m.id))
         })
     });
+    for face in &rig.faces {
+        let Some(ch) = &face.charuco else { continue };
+        let Some(&dict) = dicts.iter().find(|d| d.bits == ch.dictionary.bits) else {
+            continue;
+        };
+        markers.extend(predicted_markers(img, face, ch, dict, &markers, &twice));
+    }
     for (fi, face) in rig.faces.iter().enumerate() {
         let Some(ch) = &face.charuco else { continue };
         if let Some(fd) = detect_face(img, face, fi, ch, &markers) {
@@ -1243,6 +1324,217 @@ pub fn detect(img: &GrayImage, rig: &Rig) -> CharucoDetection {
     }
     out.markers = markers;
     out
+}
+
+/// Largest distance, in cells of the `(n + 2)²` grid, of a marker `predicted_markers` decodes
+/// from where its decoded neighbours predict each of its corners. A marker of the face in another
+/// square lies a square (`(n + 2)` cells and the white gap) away; the prediction from a neighbour
+/// two squares away is off by a fraction of a cell where a lens bends the face.
+pub const MAX_PREDICTED_MARKER_SHIFT: f64 = 2.0;
+
+/// The markers of `face` that the dark regions missed, read where the face's decoded markers put
+/// them (OpenCV's `refineDetectedMarkers` does the like for boards). Per square of the face whose
+/// marker is not decoded, beside a decoded diagonal neighbour (a marker labels corners only with
+/// those) and with at least [`MIN_PREDICTING_MARKERS`] decoded markers within [`NEIGHBOUR_REACH`]
+/// squares (the square with the most of them first): the homography fitted to
+/// all their corners (least squares, [`homography_lsq`]) gives the square's outline; it is read as
+/// [`decode`] reads a region's (its sides fitted to sub-pixel first, [`PREDICTED_EDGE_SAMPLES`]
+/// lines a side), and if that misreads, through the predicted outline itself. A read is taken only
+/// when it decodes, against the whole dictionary as any region's read, to that square's id in the
+/// square's orientation, every corner within [`MAX_PREDICTED_MARKER_SHIFT`] cells of the
+/// prediction: the bits any marker must have, at the one place the face allows them. A marker so
+/// found lends its corners to the predictions of the squares around it; a square is read again
+/// when more markers around it are decoded. `barred` holds ids decoded twice in the frame (not
+/// used).
+///
+/// The regions miss markers whose outline does not come out as one quadrilateral: at a grazing
+/// angle, two-and-a-half pixels a cell, the finer threshold splits a marker into two regions, and
+/// where a face runs into a dark band beyond the board its outline is cut short; the fit of a
+/// region's outline can also pull two corners a good part of a cell away (one side's edge found at
+/// few of its lines), and the read then misses by a few bits (the pyCamSet cube photos: all seven
+/// of OpenCV 4.6's corners that cubecal did not label).
+fn predicted_markers(
+    img: &GrayImage,
+    face: &Face,
+    ch: &Charuco,
+    dict: Dictionary,
+    markers: &[Marker],
+    barred: &[(usize, u32)],
+) -> Vec<Marker> {
+    let (sx, sy) = (face.cols + 1, face.rows + 1);
+    let n = dict.bits;
+    let min_side = (n + 2) as f64 * MIN_CELL_PX;
+    let (w, h) = (f64::from(img.width()), f64::from(img.height()));
+    let mut corners: Vec<Option<[Vector2<f64>; 4]>> = vec![None; sx * sy];
+    let mut ids: Vec<Option<u32>> = vec![None; sx * sy];
+    let mut any = false;
+    for y in 0..sy {
+        for x in 0..sx {
+            let Some(&id) = Charuco::marker_index(face.cols, x, y).and_then(|k| ch.ids.get(k))
+            else {
+                continue;
+            };
+            ids[y * sx + x] = Some(id);
+            if let Some(m) = markers.iter().find(|m| m.bits == n && m.id == id) {
+                corners[y * sx + x] = Some(m.corners);
+                any = true;
+            }
+        }
+    }
+    let mut out: Vec<Marker> = Vec::new();
+    if !any {
+        return out;
+    }
+    // The squares to read: markers not decoded, not barred.
+    let open: Vec<usize> = (0..sx * sy)
+        .filter(|&at| ids[at].is_some_and(|id| corners[at].is_none() && !barred.contains(&(n, id))))
+        .collect();
+    // The decoded markers within [`NEIGHBOUR_REACH`] of a square.
+    fn near(
+        corners: &[Option<[Vector2<f64>; 4]>],
+        (sx, sy): (usize, usize),
+        at: usize,
+    ) -> impl Iterator<Item = (usize, usize)> + '_ {
+        let (x, y) = (at % sx, at / sx);
+        let r = NEIGHBOUR_REACH;
+        (y.saturating_sub(r)..(y + r + 1).min(sy))
+            .flat_map(move |v| (x.saturating_sub(r)..(x + r + 1).min(sx)).map(move |u| (u, v)))
+            .filter(move |&(u, v)| corners[v * sx + u].is_some())
+    }
+    // Whether a marker diagonal to the square is decoded: the two share a corner, which the
+    // square's marker, read, labels (a square without one waits until one is read).
+    fn diagonal_decoded(
+        corners: &[Option<[Vector2<f64>; 4]>],
+        (sx, sy): (usize, usize),
+        at: usize,
+    ) -> bool {
+        let (x, y) = (at % sx, at / sx);
+        [(-1, -1), (1, -1), (-1, 1), (1, 1)]
+            .iter()
+            .any(
+                |&(dx, dy)| match (x.checked_add_signed(dx), y.checked_add_signed(dy)) {
+                    (Some(u), Some(v)) if u < sx && v < sy => corners[v * sx + u].is_some(),
+                    _ => false,
+                },
+            )
+    }
+    // Per square, how many neighbours predicted it when it was last read (read again only when
+    // more do).
+    let mut tried = vec![0usize; sx * sy];
+    loop {
+        // The open square with the most decoded neighbours (the best prediction) first.
+        let best = open
+            .iter()
+            .filter(|&&at| corners[at].is_none() && diagonal_decoded(&corners, (sx, sy), at))
+            .map(|&at| (near(&corners, (sx, sy), at).count(), at))
+            .filter(|&(count, at)| count >= MIN_PREDICTING_MARKERS && count > tried[at])
+            .max_by_key(|&(count, at)| (count, std::cmp::Reverse(at)));
+        let Some((count, at)) = best else {
+            return out;
+        };
+        tried[at] = count;
+        let (x, y) = (at % sx, at / sx);
+        let Some(id) = ids[at] else { continue };
+        let pairs: Vec<(Vector2<f64>, Vector2<f64>)> = near(&corners, (sx, sy), at)
+            .flat_map(|(u, v)| {
+                let c = corners[v * sx + u].into_iter().flatten();
+                marker_board_corners(face, ch, (u, v)).into_iter().zip(c)
+            })
+            .collect();
+        let board = marker_board_corners(face, ch, (x, y));
+        let Some(hom) = homography_lsq(&pairs) else {
+            continue;
+        };
+        let Some(pred) = board
+            .iter()
+            .map(|&b| apply(&hom, b))
+            .collect::<Option<Vec<_>>>()
+            .and_then(|v| <[Vector2<f64>; 4]>::try_from(v).ok())
+        else {
+            continue;
+        };
+        let sides = (0..4).map(|k| (pred[(k + 1) % 4] - pred[k]).norm());
+        let side = sides.fold(f64::INFINITY, f64::min);
+        if !(side >= min_side)
+            || pred
+                .iter()
+                .any(|p| !(p.x >= 1.0 && p.y >= 1.0 && p.x <= w - 2.0 && p.y <= h - 2.0))
+        {
+            continue;
+        }
+        let centre = pred.iter().sum::<Vector2<f64>>() / 4.0;
+        if markers
+            .iter()
+            .chain(&out)
+            .any(|m| inside_convex(&m.corners, centre))
+        {
+            continue;
+        }
+        let tol = MAX_PREDICTED_MARKER_SHIFT * side / (n + 2) as f64;
+        let expected =
+            |m: &Marker| m.id == id && (0..4).all(|k| (m.corners[k] - pred[k]).norm() <= tol);
+        // Through the fitted outline, as a region's; if that misreads, through the prediction
+        // itself (its cells read already, for the fit's level).
+        let cells = n + 2;
+        let Ok(first) = read_cells(img, &pred, cells) else {
+            continue;
+        };
+        let fitted = fit_outline::<PREDICTED_EDGE_SAMPLES>(img, &pred, &first, cells)
+            .and_then(|(q, read)| match_cells(read, &q, dict).ok())
+            .filter(expected);
+        let found = fitted.or_else(|| match_cells(first, &pred, dict).ok().filter(expected));
+        if let Some(m) = found {
+            tracing::debug!(id, "marker read where its neighbours predict it");
+            corners[at] = Some(m.corners);
+            out.push(m);
+        }
+    }
+}
+
+/// How far, in squares along a row or column, the decoded markers reach whose corners give
+/// `predicted_markers` a marker's outline: two, the markers diagonal to it and the next along its
+/// row and column, and those beyond them.
+pub const NEIGHBOUR_REACH: usize = 2;
+
+/// Fewest decoded markers within [`NEIGHBOUR_REACH`] for `predicted_markers` to read a square: one
+/// marker's homography, carried a square or two beyond it, misses by a cell or more at a grazing
+/// angle (the pyCamSet cube photos: 4 px at 2.7 px a cell), and a corner needs two markers anyway.
+pub const MIN_PREDICTING_MARKERS: usize = 2;
+
+/// The homography taking each pair's first point to its second, least squares (DLT with h₃₃ = 1 on
+/// points moved to their centroid and scaled to a mean distance of √2: the normal equations, 8 × 8);
+/// `None` for fewer than four pairs or a degenerate fit.
+fn homography_lsq(pairs: &[(Vector2<f64>, Vector2<f64>)]) -> Option<Matrix3<f64>> {
+    if pairs.len() < 4 {
+        return None;
+    }
+    let norm = |pts: &mut dyn Iterator<Item = Vector2<f64>>| {
+        let v: Vec<Vector2<f64>> = pts.collect();
+        let c = v.iter().sum::<Vector2<f64>>() / v.len() as f64;
+        let d = v.iter().map(|p| (p - c).norm()).sum::<f64>() / v.len() as f64;
+        let s = if d > 0.0 {
+            std::f64::consts::SQRT_2 / d
+        } else {
+            1.0
+        };
+        Matrix3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0)
+    };
+    let ta = norm(&mut pairs.iter().map(|p| p.0));
+    let tb = norm(&mut pairs.iter().map(|p| p.1));
+    let mut ata = SMatrix::<f64, 8, 8>::zeros();
+    let mut atb = SVector::<f64, 8>::zeros();
+    for &(a, b) in pairs {
+        let (a, b) = (apply(&ta, a)?, apply(&tb, b)?);
+        let (x, y, u, v) = (a.x, a.y, b.x, b.y);
+        let r1 = SVector::<f64, 8>::from_row_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]);
+        let r2 = SVector::<f64, 8>::from_row_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]);
+        ata += r1 * r1.transpose() + r2 * r2.transpose();
+        atb += r1 * u + r2 * v;
+    }
+    let e = ata.cholesky()?.solve(&atb);
+    let hn = Matrix3::new(e[0], e[1], e[2], e[3], e[4], e[5], e[6], e[7], 1.0);
+    let h = tb.try_inverse()? * hn * ta;
+    (h[(2, 2)].abs() > 1e-12).then(|| h / h[(2, 2)])
 }
 
 fn detect_face(
