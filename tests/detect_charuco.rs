@@ -575,7 +575,8 @@ fn cut_marker_read_where_its_neighbours_put_it_with_its_own_bits_only() {
             for d in 0..2 {
                 let (a, b) = (x0 + 3 * cell - 1 + d, y0 + t - 3);
                 img.put_pixel(a, b, image::Luma([235]));
-                img.put_pixel(b - y0 + x0, a - x0 + y0, image::Luma([235]));
+                // The same line transposed about the marker's corner (x0, y0).
+                img.put_pixel(x0 + t - 3, y0 + 3 * cell - 1 + d, image::Luma([235]));
             }
         }
     };
