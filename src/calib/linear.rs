@@ -14,7 +14,9 @@
 //! computed from a QR decomposition of the row-reversed, transposed `M`. `P` is first given the sign that
 //! makes `det M > 0`, so that `det R = +1` and points in front of the camera have positive depth.
 
-use nalgebra::{DMatrix, Matrix3, Matrix3x4, Matrix4, Rotation3, SVector, Vector2, Vector3};
+use nalgebra::{
+    DMatrix, Matrix3, Matrix3x4, Matrix4, Rotation3, SMatrix, SVector, Vector2, Vector3,
+};
 
 use super::CalibError;
 use crate::camera::Pose;
@@ -314,6 +316,45 @@ pub fn homography(
     } else {
         hm / hm.norm()
     })
+}
+
+/// The homography `x ≃ H X` normalised by `H₃₃ = 1`, fitted by least squares to the pairs `(X, x)`
+/// through its eight normal equations: a fraction of the cost of [`homography`]'s SVD, for callers
+/// that fit many small ones. Only valid where `X = 0` is not mapped to infinity; the caller centres
+/// and scales its points (`None` for fewer than four pairs or singular normal equations).
+pub fn homography_h33(
+    pairs: impl IntoIterator<Item = (Vector2<f64>, Vector2<f64>)>,
+) -> Option<Matrix3<f64>> {
+    // With h = (h₁₁ h₁₂ h₁₃ h₂₁ h₂₂ h₂₃ h₃₁ h₃₂), each pair (x, y) → (u, v) gives
+    // u = h₁₁x + h₁₂y + h₁₃ − h₃₁xu − h₃₂yu and the same for v.
+    let mut ata = SMatrix::<f64, 8, 8>::zeros();
+    let mut atb = SVector::<f64, 8>::zeros();
+    let mut n = 0;
+    for (q, uv) in pairs {
+        let (x, y) = (q.x, q.y);
+        let rows = [
+            (
+                SVector::<f64, 8>::from([x, y, 1.0, 0.0, 0.0, 0.0, -x * uv.x, -y * uv.x]),
+                uv.x,
+            ),
+            (
+                SVector::<f64, 8>::from([0.0, 0.0, 0.0, x, y, 1.0, -x * uv.y, -y * uv.y]),
+                uv.y,
+            ),
+        ];
+        for (row, rhs) in rows {
+            ata.ger(1.0, &row, &row, 1.0);
+            atb.axpy(rhs, &row, 1.0);
+        }
+        n += 1;
+    }
+    if n < 4 {
+        return None;
+    }
+    let h = ata.cholesky()?.solve(&atb);
+    Some(Matrix3::new(
+        h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0,
+    ))
 }
 
 /// Zhang's closed-form intrinsics from ≥ 2 homographies (skew constrained to zero), computed in

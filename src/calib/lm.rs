@@ -939,10 +939,14 @@ fn equal_weight_sandwich(
     let q = m.ncols();
     let mut g = DMatrix::<f64>::zeros(q, q);
     let (mut chi2, mut count) = (0.0, 0usize);
-    // `Eᵢ = [mᵀ | −W_v V_v⁻¹] cᵢ` with `cᵢ` the corner's Jacobians stacked (19×2, the full
+    // `Eᵢ = [mᵀ | −W_v V_v⁻¹] cᵢ` with `cᵢ` the corner's Jacobians stacked (STACKED×2, the full
     // intrinsic vector and the pose): per view, `Σᵢ cᵢ Qᵢ cᵢᵀ` in fixed size, then mapped once.
+    const STACKED: usize = N_INTRINSIC + 6;
+    let mut t = DMatrix::<f64>::zeros(q, STACKED);
+    t.view_mut((0, 0), (q, N_INTRINSIC))
+        .copy_from(&m.transpose());
     for (i, view) in problem.views.iter().enumerate() {
-        let mut acc = SMatrix::<f64, 19, 19>::zeros();
+        let mut acc = SMatrix::<f64, STACKED, STACKED>::zeros();
         for (j, c) in view.points.iter().enumerate() {
             if !problem.active[i][j] {
                 continue;
@@ -953,7 +957,7 @@ fn equal_weight_sandwich(
             count += 2;
             // The corner's equal weight is isotropic, `sc·I` (1 without a ceiling).
             let sc = problem.whiten.as_ref().map_or(1.0, |w| w[i][j][(0, 0)]);
-            let mut ci = SMatrix::<f64, 19, 2>::zeros();
+            let mut ci = SMatrix::<f64, STACKED, 2>::zeros();
             ci.fixed_view_mut::<N_INTRINSIC, 2>(0, 0)
                 .copy_from(&j_int.transpose());
             ci.fixed_view_mut::<6, 2>(N_INTRINSIC, 0)
@@ -966,12 +970,9 @@ fn equal_weight_sandwich(
             }
         }
         acc.fill_upper_triangle_with_lower_triangle();
-        let mut t = DMatrix::<f64>::zeros(q, 19);
-        t.view_mut((0, 0), (q, N_INTRINSIC))
-            .copy_from(&m.transpose());
         t.view_mut((0, N_INTRINSIC), (q, 6))
             .copy_from(&(-marginal.w_vinv(n, i)));
-        let acc = DMatrix::from_column_slice(19, 19, acc.as_slice());
+        let acc = DMatrix::from_column_slice(STACKED, STACKED, acc.as_slice());
         g += &t * acc * t.transpose();
     }
     let dof = count.saturating_sub(n.n_params()).max(1) as f64;

@@ -115,6 +115,7 @@ use nalgebra::{Matrix3, SMatrix, SVector, Vector2, Vector3};
 
 use super::face::{FaceDetection, LabelledCorner, Rejection};
 use super::refine;
+use crate::calib::linear::{homography_h33, normalize_2d};
 use crate::rig::charuco::{Charuco, Dictionary, rotate_code};
 use crate::rig::{Face, Rig};
 
@@ -1501,38 +1502,27 @@ pub const NEIGHBOUR_REACH: usize = 2;
 /// angle (the pyCamSet cube photos: 4 px at 2.7 px a cell), and a corner needs two markers anyway.
 pub const MIN_PREDICTING_MARKERS: usize = 2;
 
-/// The homography taking each pair's first point to its second, least squares (DLT with h₃₃ = 1 on
-/// points moved to their centroid and scaled to a mean distance of √2: the normal equations, 8 × 8);
+/// The homography taking each pair's first point to its second, least squares
+/// ([`homography_h33`] on points moved to their centroid and scaled to a mean distance of √2);
 /// `None` for fewer than four pairs or a degenerate fit.
 fn homography_lsq(pairs: &[(Vector2<f64>, Vector2<f64>)]) -> Option<Matrix3<f64>> {
     if pairs.len() < 4 {
         return None;
     }
-    let norm = |pts: &mut dyn Iterator<Item = Vector2<f64>>| {
-        let v: Vec<Vector2<f64>> = pts.collect();
-        let c = v.iter().sum::<Vector2<f64>>() / v.len() as f64;
-        let d = v.iter().map(|p| (p - c).norm()).sum::<f64>() / v.len() as f64;
-        let s = if d > 0.0 {
-            std::f64::consts::SQRT_2 / d
-        } else {
-            1.0
-        };
-        Matrix3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0)
+    let side = |k: usize| -> Vec<Vector2<f64>> {
+        pairs
+            .iter()
+            .map(|p| if k == 0 { p.0 } else { p.1 })
+            .collect()
     };
-    let ta = norm(&mut pairs.iter().map(|p| p.0));
-    let tb = norm(&mut pairs.iter().map(|p| p.1));
-    let mut ata = SMatrix::<f64, 8, 8>::zeros();
-    let mut atb = SVector::<f64, 8>::zeros();
-    for &(a, b) in pairs {
-        let (a, b) = (apply(&ta, a)?, apply(&tb, b)?);
-        let (x, y, u, v) = (a.x, a.y, b.x, b.y);
-        let r1 = SVector::<f64, 8>::from_row_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]);
-        let r2 = SVector::<f64, 8>::from_row_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]);
-        ata += r1 * r1.transpose() + r2 * r2.transpose();
-        atb += r1 * u + r2 * v;
-    }
-    let e = ata.cholesky()?.solve(&atb);
-    let hn = Matrix3::new(e[0], e[1], e[2], e[3], e[4], e[5], e[6], e[7], 1.0);
+    let ta = normalize_2d(&side(0)).ok()?;
+    let tb = normalize_2d(&side(1)).ok()?;
+    let hn = homography_h33(
+        pairs
+            .iter()
+            .map(|&(a, b)| Some((apply(&ta, a)?, apply(&tb, b)?)))
+            .collect::<Option<Vec<_>>>()?,
+    )?;
     let h = tb.try_inverse()? * hn * ta;
     (h[(2, 2)].abs() > 1e-12).then(|| h / h[(2, 2)])
 }

@@ -21,7 +21,7 @@
 use std::collections::BTreeMap;
 
 use image::GrayImage;
-use nalgebra::{Matrix2, Matrix3, SMatrix, SVector, Vector2, Vector3};
+use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 
 use super::XCorner;
 use super::grid::Grid;
@@ -192,30 +192,13 @@ fn image_of_origin(plane: &[Vector2<f64>], image: &[Vector2<f64>]) -> Option<Vec
     if !(scale.is_finite() && scale > 1e-9) {
         return None;
     }
-    // With h = (h₁₁ h₁₂ h₁₃ h₂₁ h₂₂ h₂₃ h₃₁ h₃₂) and H₃₃ = 1, each correspondence (x, y) → (u, v)
-    // gives u = h₁₁x + h₁₂y + h₁₃ − h₃₁xu − h₃₂yu and the same for v.
-    let mut ata = SMatrix::<f64, 8, 8>::zeros();
-    let mut atb = SVector::<f64, 8>::zeros();
-    for (q, p) in plane.iter().zip(image) {
-        let (x, y) = (q.x, q.y);
-        let uv = (p - centre) / scale;
-        let rows = [
-            (
-                SVector::<f64, 8>::from([x, y, 1.0, 0.0, 0.0, 0.0, -x * uv.x, -y * uv.x]),
-                uv.x,
-            ),
-            (
-                SVector::<f64, 8>::from([0.0, 0.0, 0.0, x, y, 1.0, -x * uv.y, -y * uv.y]),
-                uv.y,
-            ),
-        ];
-        for (row, rhs) in rows {
-            ata.ger(1.0, &row, &row, 1.0);
-            atb.axpy(rhs, &row, 1.0);
-        }
-    }
-    let h = ata.cholesky()?.solve(&atb);
-    let uv = centre + Vector2::new(h[2], h[5]) * scale;
+    let h = crate::calib::linear::homography_h33(
+        plane
+            .iter()
+            .zip(image)
+            .map(|(q, p)| (*q, (p - centre) / scale)),
+    )?;
+    let uv = centre + Vector2::new(h[(0, 2)], h[(1, 2)]) * scale;
     uv.iter().all(|v| v.is_finite()).then_some(uv)
 }
 

@@ -708,11 +708,14 @@ struct Normal {
     qr: f64,
 }
 
+/// A fit's curvature shift, shading shift and response correction ([`extra_shifts`]).
+type ExtraShifts = (Matrix2<f64>, Matrix2<f64>, Vector2<f64>);
+
 /// The first-order shift of the corner per unit curvature of each line ([`Refined::curvature_shift`])
 /// and per unit shading gradient ([`Refined::shading_shift`]) at a converged fit with normal
 /// equations `n` (accumulated with the extra terms): with a term held at `κ` instead of 0, the
 /// normal equations move the seven parameters by `−(JᵀJ)⁻¹·Jᵀ J_κ·κ`.
-fn extra_shifts(n: &Normal) -> Option<(Matrix2<f64>, Matrix2<f64>, Vector2<f64>)> {
+fn extra_shifts(n: &Normal) -> Option<ExtraShifts> {
     let chol = n.jtj.cholesky()?;
     let shift = -chol.solve(&n.cross);
     Some((
@@ -729,9 +732,9 @@ fn extra_shifts(n: &Normal) -> Option<(Matrix2<f64>, Matrix2<f64>, Vector2<f64>)
 /// bands and borders cut them), and it did: on noise-free renders of the realistic set (gamma 2.2)
 /// the corners below 75° were 0.0037 px RMS from the truth, against 0.0025 px with gamma 1. Here `q`
 /// is solved jointly with the seven parameters in one Gauss–Newton step from the point of the
-/// normal equations `n` (the second stage's first point, see [`solve`]; Schur complement: `q = −(Σ G²r + bᵀδ)/(Σ G⁴ − bᵀ(JᵀJ)⁻¹b)` with `b = Jᵀ G²`
-/// and `δ` the seven-parameter step), and the corner moves by `−(JᵀJ)⁻¹b·q`. `delta` is that step,
-/// `sb` is `−(JᵀJ)⁻¹b`.
+/// normal equations `n` (the second stage's first point, see [`solve`]; Schur complement:
+/// `q = −(Σ G²r + bᵀδ)/(Σ G⁴ − bᵀ(JᵀJ)⁻¹b)` with `b = Jᵀ G²` and `δ` the seven-parameter step),
+/// and the corner moves by `−(JᵀJ)⁻¹b·q`. `delta` is that step, `sb` is `−(JᵀJ)⁻¹b`.
 fn response_shift(n: &Normal, delta: &P, sb: &P) -> Vector2<f64> {
     let b = n.cross.column(4);
     let denom = n.qq + b.dot(sb);
@@ -1127,7 +1130,7 @@ struct Fit {
     p: P,
     normal: Normal,
     /// With `CURVATURE`: [`extra_shifts`] at the first point evaluated (see [`solve`]).
-    extras: Option<(Matrix2<f64>, Matrix2<f64>, Vector2<f64>)>,
+    extras: Option<ExtraShifts>,
 }
 
 /// Levenberg–Marquardt from `p` on `win` until a step is within `tol`. That last step is taken
