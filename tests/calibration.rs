@@ -510,6 +510,89 @@ fn corners_weighted_by_their_own_covariance_give_honest_sigma() {
     );
 }
 
+/// Neighbouring corners whose noise is correlated (issue 29: the detector's overlapping fit windows;
+/// on real photos, model error shared by a face's corners): each corner's error is its own draw
+/// plus 0.3 of each grid neighbour's, which correlates neighbours by ≈ +0.45 (as on real photos,
+/// 0.3–0.5), and each corner's covariance says only its own marginal variance. The equal-weight
+/// sandwich adds the neighbours' residual cross-products, so χ² of (fx, fy, cx, cy) against the
+/// truth still averages ≈ 4 over seeded trials; the covariance-weighted solve, which takes the
+/// corners as independent, reports σ far too small for the same data.
+#[test]
+fn neighbours_that_move_together_widen_equal_weights_sigma() {
+    use calib::neighbours::grid_neighbours;
+    use nalgebra::Matrix2;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let truth = reference_camera();
+    let trials = 40;
+    let (sigma0, c) = (0.1, 0.3);
+    let (mut chi2_e, mut chi2_w) = (0.0, 0.0);
+    for t in 0..trials {
+        let sc = cube_scenario(&truth, 200.0, 8, 900 + t);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1900 + t);
+        let unit = Normal::new(0.0, sigma0).unwrap();
+        let views: Vec<View> = sc
+            .views
+            .iter()
+            .map(|v| {
+                let xyz: Vec<Vector3<f64>> = v.points.iter().map(|p| p.xyz).collect();
+                let mut nbrs = vec![Vec::new(); xyz.len()];
+                for (a, b) in grid_neighbours(&xyz) {
+                    nbrs[a].push(b);
+                    nbrs[b].push(a);
+                }
+                let z: Vec<Vector2<f64>> = (0..xyz.len())
+                    .map(|_| Vector2::new(unit.sample(&mut rng), unit.sample(&mut rng)))
+                    .collect();
+                View {
+                    name: v.name.clone(),
+                    points: v
+                        .points
+                        .iter()
+                        .enumerate()
+                        .map(|(i, p)| {
+                            let e = z[i] + nbrs[i].iter().map(|&j| z[j] * c).sum::<Vector2<f64>>();
+                            let var = sigma0 * sigma0 * (1.0 + c * c * nbrs[i].len() as f64);
+                            Correspondence {
+                                xyz: p.xyz,
+                                uv: p.uv + e,
+                                cov: Some(Matrix2::identity() * var),
+                            }
+                        })
+                        .collect(),
+                }
+            })
+            .collect();
+        let equal = calib::solve(
+            &views,
+            truth.image_size,
+            &SolveOptions {
+                weighting: calib::Weighting::Equal,
+                ..SolveOptions::default()
+            },
+        )
+        .unwrap();
+        let weighted = calib::solve(&views, truth.image_size, &SolveOptions::default()).unwrap();
+        let names = ["fx", "fy", "cx", "cy"];
+        chi2_e += equal.chi2_against(&truth.params, &names).unwrap();
+        chi2_w += weighted.chi2_against(&truth.params, &names).unwrap();
+    }
+    let n = trials as f64;
+    let (chi2_e, chi2_w) = (chi2_e / n, chi2_w / n);
+    eprintln!(
+        "equal weights (sandwich with neighbours): mean χ² {chi2_e:.2}; weighted, corners independent: {chi2_w:.2}"
+    );
+    // The mean of 40 χ²₄ has a standard deviation of √(8/40) = 0.45.
+    assert!(
+        (2.9..=5.3).contains(&chi2_e),
+        "equal weights: mean χ² {chi2_e}"
+    );
+    assert!(
+        chi2_w > 6.0,
+        "corners taken as independent: mean χ² {chi2_w}"
+    );
+}
+
 /// Weighting by a covariance common to every point changes nothing but the units of the residuals:
 /// the same calibration and σ as the equally weighted solve, and the robust loss's pixel scale means
 /// the same.

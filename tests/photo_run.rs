@@ -39,6 +39,11 @@ fn calibrate(args: &[&std::ffi::OsStr]) -> Output {
     cubecal()
         .env("RUST_LOG", "cubecal::report=debug")
         .args(["calibrate", "--json", "--rig", BOARD])
+        // The 13 left photos (640×480) determine fx to σ 0.12 % with the neighbours' correlation
+        // counted (issue 29), beyond the default verdict's 0.1 %; the published calibrations of
+        // these photos spread as much (SOURCE.md: fx 532.3–533.5). These tests are of the photo
+        // run, not of that threshold.
+        .args(["--set", "qa.max_sigma_fx_rel=0.002"])
         .args(args)
         .output()
         .unwrap()

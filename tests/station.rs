@@ -722,6 +722,10 @@ fn photos_of_a_board_give_the_reference_focal_length() {
         ("camera.images", list.as_str()),
         ("camera.frames_per_pose", "1"),
         ("turntable.kind", "\"none\""),
+        // These 13 photos (640×480) determine fx to σ 0.12 % with the neighbours' correlation
+        // counted (issue 29), beyond the default verdict's 0.1 %; the published calibrations of
+        // them spread as much (SOURCE.md: fx 532.3–533.5).
+        ("qa.max_sigma_fx_rel", "0.002"),
     ]);
     let hw = hardware::open(&cfg, &board, None).unwrap();
     let (r, _d) = run_hw(

@@ -18,6 +18,7 @@ pub mod init;
 pub mod linear;
 mod lm;
 mod lm_core;
+pub mod neighbours;
 pub mod observations;
 pub mod pose;
 pub mod report;
