@@ -424,6 +424,21 @@ fn non_convergence_is_reported_not_hidden() {
     assert!(!cal.termination.is_converged());
 }
 
+/// The same views solved with equal weights and weighted by their points' covariances.
+fn solve_equal_and_weighted(
+    views: &[View],
+    image_size: [u32; 2],
+) -> (calib::Calibration, calib::Calibration) {
+    let equal = SolveOptions {
+        weighting: calib::Weighting::Equal,
+        ..SolveOptions::default()
+    };
+    (
+        calib::solve(views, image_size, &equal).unwrap(),
+        calib::solve(views, image_size, &SolveOptions::default()).unwrap(),
+    )
+}
+
 /// Each point with its own covariance (issue 29): anisotropic noise of very different size per
 /// point (a third of the points 5× noisier, every point's error ellipse turned its own way), drawn
 /// from exactly that covariance. Weighted by it, the solve is generalised least squares: the whitened
@@ -473,16 +488,7 @@ fn corners_weighted_by_their_own_covariance_give_honest_sigma() {
                     .collect(),
             })
             .collect();
-        let weighted = calib::solve(&views, truth.image_size, &SolveOptions::default()).unwrap();
-        let equal = calib::solve(
-            &views,
-            truth.image_size,
-            &SolveOptions {
-                weighting: calib::Weighting::Equal,
-                ..SolveOptions::default()
-            },
-        )
-        .unwrap();
+        let (equal, weighted) = solve_equal_and_weighted(&views, truth.image_size);
         assert!(equal.noise_scale.is_none());
         scale += weighted.noise_scale.unwrap();
         let names = ["fx", "fy", "cx", "cy"];
@@ -563,16 +569,7 @@ fn neighbours_that_move_together_widen_equal_weights_sigma() {
                 }
             })
             .collect();
-        let equal = calib::solve(
-            &views,
-            truth.image_size,
-            &SolveOptions {
-                weighting: calib::Weighting::Equal,
-                ..SolveOptions::default()
-            },
-        )
-        .unwrap();
-        let weighted = calib::solve(&views, truth.image_size, &SolveOptions::default()).unwrap();
+        let (equal, weighted) = solve_equal_and_weighted(&views, truth.image_size);
         let names = ["fx", "fy", "cx", "cy"];
         chi2_e += equal.chi2_against(&truth.params, &names).unwrap();
         chi2_w += weighted.chi2_against(&truth.params, &names).unwrap();
