@@ -519,12 +519,12 @@ fn corners_weighted_by_their_own_covariance_give_honest_sigma() {
 /// Neighbouring corners whose noise is correlated (issue 29: the detector's overlapping fit windows;
 /// on real photos, model error shared by a face's corners): each corner's error is its own draw
 /// plus 0.3 of each grid neighbour's, which correlates neighbours by ≈ +0.45 (as on real photos,
-/// 0.3–0.5), and each corner's covariance says only its own marginal variance. The equal-weight
-/// sandwich adds the neighbours' residual cross-products, so χ² of (fx, fy, cx, cy) against the
-/// truth still averages ≈ 4 over seeded trials; the covariance-weighted solve, which takes the
-/// corners as independent, reports σ far too small for the same data.
+/// 0.3–0.5), and each corner's covariance says only its own marginal variance. Both solves add the
+/// neighbours' residual cross-products to their covariance, so χ² of (fx, fy, cx, cy) against the
+/// truth averages ≈ 4 over seeded trials. Without them the covariance-weighted solve's mean χ² here
+/// was 9.72 (σ 1.6× too small).
 #[test]
-fn neighbours_that_move_together_widen_equal_weights_sigma() {
+fn neighbours_that_move_together_widen_sigma() {
     use calib::neighbours::grid_neighbours;
     use nalgebra::Matrix2;
     use rand::SeedableRng;
@@ -576,18 +576,13 @@ fn neighbours_that_move_together_widen_equal_weights_sigma() {
     }
     let n = trials as f64;
     let (chi2_e, chi2_w) = (chi2_e / n, chi2_w / n);
-    eprintln!(
-        "equal weights (sandwich with neighbours): mean χ² {chi2_e:.2}; weighted, corners independent: {chi2_w:.2}"
-    );
+    eprintln!("mean χ² with the neighbours' part: equal weights {chi2_e:.2}, weighted {chi2_w:.2}");
     // The mean of 40 χ²₄ has a standard deviation of √(8/40) = 0.45.
     assert!(
         (2.9..=5.3).contains(&chi2_e),
         "equal weights: mean χ² {chi2_e}"
     );
-    assert!(
-        chi2_w > 6.0,
-        "corners taken as independent: mean χ² {chi2_w}"
-    );
+    assert!((2.9..=5.3).contains(&chi2_w), "weighted: mean χ² {chi2_w}");
 }
 
 /// Weighting by a covariance common to every point changes nothing but the units of the residuals:

@@ -39,11 +39,17 @@
 //! estimator's covariance only when every corner's noise is the same, and a station's corners are
 //! not (grazing, blurred and far faces are noisier, and equal weights give them the same say). The
 //! covariance is then the sandwich `S⁻¹ (Σᵢ J̃ᵢᵀ Σᵢ J̃ᵢ) S⁻¹` marginalised over the poses
-//! (`equal_weight_sandwich`), scaled by the residuals' `χ²/dof` against the `Σᵢ` (as the weighted
+//! (`sandwich_covariance`), scaled by the residuals' `χ²/dof` against the `Σᵢ` (as the weighted
 //! solve scales by `σ̂²`: the detector's covariances are taken as right in their proportions only).
 //! Measured on 20 seeds of the synthetic station (`cargo run --release --example station_chi2 --
 //! 20`): χ² of (fx, fy, cx, cy) against the truth averages 5.00 with it (1 run of 20 above the 95th
 //! percentile), 6.35 with the scatter's σ alone (3 runs); 4 ± 1.26 expected.
+//!
+//! Neighbouring corners are not independent either: their fit windows overlap and they share their
+//! face's model error. Both weightings add the grid neighbours' residual cross-products to the
+//! sandwich where they are significant (`neighbours_part`; neighbours found from the rig
+//! coordinates, [`super::neighbours`]): the station's mean χ² 5.00 → 4.24, and on the pycalib photo
+//! set, disjoint quarters disagree by 1.3σ RMS instead of 2.1σ (issue 29).
 //!
 //! ## Robustness and outliers
 //! An optional robust loss (Huber, Cauchy) is applied by iteratively reweighted least squares.
@@ -852,10 +858,10 @@ fn finish(
     }
     // Equal weights: the intrinsics' covariance from each corner's own (the scatter's is right only
     // for equal noise).
-    if problem.equal
-        && let Some(sandwich) = equal_weight_sandwich(problem, &camera, &poses, &n, &marginal)
+    if (problem.equal || problem.whiten.is_some())
+        && let Some(c) = sandwich_covariance(problem, &camera, &poses, &n, &marginal)
     {
-        marginal.covariance = sandwich;
+        marginal.covariance = c;
     }
     let (std_dev, estimated) = map.std_dev(&marginal.covariance);
 
@@ -920,30 +926,31 @@ fn finish(
     })
 }
 
-/// The covariance of the free intrinsics of an equal-weighted solve when the corners' noise is not
-/// equal, nor independent between neighbours: the sandwich `S⁻¹ (Σᵢ Eᵢ Wᵢ Σᵢ Wᵢᵀ Eᵢᵀ + N) S⁻¹`,
-/// marginalised over each view's pose (`Eᵢ = J̃ᵢ,cᵀ − W_v V_v⁻¹ J̃ᵢ,poseᵀ`, `Wᵢ` the corner's equal
-/// weight with its ceiling, `Σᵢ` its own covariance). `σ̂² S⁻¹` from the residuals' scatter is this
-/// covariance only when every corner's noise is the same and independent: equal weights give
-/// grazing, blurred and far faces' corners the same say as the rest, and their larger noise then
-/// moves the estimate by more than the scatter admits.
+/// The covariance of the free intrinsics as a sandwich `S⁻¹ (M + N) S⁻¹`, marginalised over each
+/// view's pose (`Eᵢ = J̃ᵢ,cᵀ − W_v V_v⁻¹ J̃ᵢ,poseᵀ`, `Wᵢ` the corner's weight in the solve).
 ///
-/// The corners' own part is scaled by `χ²/dof` of the residuals against the `Σᵢ` (the detector's
-/// covariances are right in their proportions, not necessarily in their scale).
+/// `M`, the corners' own part:
+/// - equal weights (`Wᵢ` with its ceiling): `Σᵢ Eᵢ Wᵢ Σᵢ Wᵢᵀ Eᵢᵀ` with `Σᵢ` each corner's own
+///   covariance, scaled by `χ²/dof` of the residuals against the `Σᵢ` (the detector's covariances
+///   are right in their proportions, not necessarily in their scale). `σ̂² S⁻¹` from the residuals'
+///   scatter is this covariance only when every corner's noise is the same: equal weights give
+///   grazing, blurred and far faces' corners the same say as the rest, and their larger noise then
+///   moves the estimate by more than the scatter admits. Needs every active corner's covariance.
+/// - weighted by the corners' covariances (`Wᵢ = Σᵢ⁻¹`): `σ̂² S`, so that without `N` this is the
+///   usual `σ̂² S⁻¹`.
 ///
 /// `N` is the neighbours' part: `Σ (Eₐ Wₐ rₐ rᵦᵀ Wᵦ Eᵦᵀ + its transpose)` over the pairs of grid
 /// neighbours of each view ([`grid_neighbours`]), with the residuals `r` standing in for the noise
 /// (the cross-products of a heteroscedasticity-and-autocorrelation-consistent sandwich, with the
-/// grid's adjacency as the kernel). Why: neighbouring corners share the image noise of their
-/// overlapping fit windows and the model error of their face (a lens or board the model does not
-/// fit), so they move together. Measured (issue 29): residual correlation across the line joining
-/// neighbours ≈ 0.2 on the hard render set, 0.1 on the realistic one, 0.3–0.5 on real photos. `N` is
-/// used as estimated, negative directions included: where neighbours are independent the
-/// residuals' noise makes it negative as often as positive, and holding its eigenvalues at ≥ 0
-/// made σ too large (hard set, 200 realisations: χ² of fx, fy, cx, cy against the truth 3.37
-/// against 3.80 as estimated, behind the test of [`neighbours_part`]). Should `N` make the total indefinite, the corners are taken as
-/// independent. `None` unless every active corner has a covariance.
-fn equal_weight_sandwich(
+/// grid's adjacency as the kernel), added where it is significant ([`neighbours_part`]). Why:
+/// neighbouring corners share the image noise of their overlapping fit windows and the model error
+/// of their face (a lens or board the model does not fit), so they move together. Measured (issue
+/// 29): residual correlation across the line joining neighbours ≈ 0.2 on the hard render set, 0.1
+/// on the realistic one, 0.3–0.5 on real photos. `N` is used as estimated, negative directions
+/// included: holding its eigenvalues at ≥ 0 made σ too large (hard set, 200 realisations: χ² of
+/// fx, fy, cx, cy against the truth 3.37 against 3.80). Should `N` make the total indefinite, the
+/// corners are taken as independent. `None` when a needed covariance is missing.
+fn sandwich_covariance(
     problem: &Problem<'_>,
     camera: &Camera,
     poses: &[Pose],
@@ -956,7 +963,6 @@ fn equal_weight_sandwich(
     let (mut chi2, mut count) = (0.0, 0usize);
     // `Eᵢ = [mᵀ | −W_v V_v⁻¹] cᵢ` with `cᵢ` the corner's Jacobians stacked (STACKED×2, the full
     // intrinsic vector and the pose): per view, `Σᵢ cᵢ Qᵢ cᵢᵀ` in fixed size, then mapped once.
-    const STACKED: usize = N_INTRINSIC + 6;
     type Stacked = SMatrix<f64, STACKED, STACKED>;
     let mut t = DMatrix::<f64>::zeros(q, STACKED);
     t.view_mut((0, 0), (q, N_INTRINSIC))
@@ -973,39 +979,49 @@ fn equal_weight_sandwich(
             if !problem.active[i][j] {
                 continue;
             }
-            let cov = c.cov?;
             let (r, j_int, j_pose) = residual_jacobians(camera, &poses[i], c).ok()?;
-            chi2 += r.dot(&(cov.try_inverse()? * r));
-            count += 2;
-            // The corner's equal weight is isotropic, `sc·I` (1 without a ceiling).
-            let sc = problem.whiten.as_ref().map_or(1.0, |w| w[i][j][(0, 0)]);
-            let mut ci = SMatrix::<f64, STACKED, 2>::zeros();
-            ci.fixed_view_mut::<N_INTRINSIC, 2>(0, 0)
-                .copy_from(&j_int.transpose());
-            ci.fixed_view_mut::<6, 2>(N_INTRINSIC, 0)
-                .copy_from(&j_pose.transpose());
-            // `cᵢ Wᵢ Σᵢ Wᵢᵀ cᵢᵀ = (cᵢ R)(cᵢ R)ᵀ` with `R = sc² chol(Σᵢ)` (the weight `Wᵢ = sc²` of the
-            // corner's squared residual): two symmetric rank-1 updates of the lower triangle.
-            let d = ci * (cov.cholesky()?.l() * (sc * sc));
-            for k in 0..2 {
-                acc.syger(1.0, &d.column(k), &d.column(k), 1.0);
+            let ci = stacked(&j_int, &j_pose);
+            // The corner's weight `Wᵢ = wᵀw` (`w` its whitening: `sc·I` for equal weights with
+            // their ceiling, `L⁻¹` for its covariance; the identity when no corner is whitened).
+            let w = problem
+                .whiten
+                .as_ref()
+                .map_or(Matrix2::identity(), |w| w[i][j]);
+            let wt_w = w.transpose() * w;
+            if problem.equal {
+                let cov = c.cov?;
+                chi2 += r.dot(&(cov.try_inverse()? * r));
+                count += 2;
+                // `cᵢ Wᵢ Σᵢ Wᵢᵀ cᵢᵀ = (cᵢ R)(cᵢ R)ᵀ` with `R = Wᵢ chol(Σᵢ)`: two symmetric rank-1
+                // updates of the lower triangle.
+                let d = ci * (wt_w * cov.cholesky()?.l());
+                for k in 0..2 {
+                    acc.syger(1.0, &d.column(k), &d.column(k), 1.0);
+                }
             }
-            weighted.extend((ci * (r * (sc * sc))).iter());
+            weighted.extend((ci * (wt_w * r)).iter());
             xyz.push(c.xyz);
         }
-        acc.fill_upper_triangle_with_lower_triangle();
         t.view_mut((0, N_INTRINSIC), (q, 6))
             .copy_from(&(-marginal.w_vinv(n, i)));
-        own += &t * DMatrix::from_column_slice(STACKED, STACKED, acc.as_slice()) * t.transpose();
+        if problem.equal {
+            acc.fill_upper_triangle_with_lower_triangle();
+            own +=
+                &t * DMatrix::from_column_slice(STACKED, STACKED, acc.as_slice()) * t.transpose();
+        }
         let pairs = grid_neighbours(&xyz);
         if !pairs.is_empty() {
             let x = DMatrix::from_column_slice(STACKED, xyz.len(), &weighted);
             mapped.push((&t * x, pairs));
         }
     }
-    let dof = count.saturating_sub(n.n_params()).max(1) as f64;
-    // The corners' own part, at the scale of their covariances the residuals say.
-    let own = own * (chi2 / dof);
+    let own = if problem.equal {
+        // The corners' own part, at the scale of their covariances the residuals say.
+        let dof = count.saturating_sub(n.n_params()).max(1) as f64;
+        own * (chi2 / dof)
+    } else {
+        marginal.s_inv.clone().cholesky()?.inverse() * marginal.sigma2
+    };
     let middle = match neighbours_part(&own, &mapped) {
         Some(pairs_part) => {
             let with_pairs = &own + pairs_part;
@@ -1016,10 +1032,28 @@ fn equal_weight_sandwich(
                 own
             }
         }
+        None if !problem.equal => return None,
         None => own,
     };
     let out = &marginal.s_inv * middle * &marginal.s_inv;
     out.iter().all(|x| x.is_finite()).then_some(out)
+}
+
+/// The full intrinsic vector and the pose, stacked: the size of a corner's Jacobian `cᵢ` (its
+/// transpose, STACKED×2) in the sandwich.
+const STACKED: usize = N_INTRINSIC + 6;
+
+/// A corner's Jacobians stacked as `cᵢ` (STACKED×2).
+fn stacked(
+    j_int: &crate::camera::IntrinsicJacobian,
+    j_pose: &SMatrix<f64, 2, 6>,
+) -> SMatrix<f64, STACKED, 2> {
+    let mut ci = SMatrix::<f64, STACKED, 2>::zeros();
+    ci.fixed_view_mut::<N_INTRINSIC, 2>(0, 0)
+        .copy_from(&j_int.transpose());
+    ci.fixed_view_mut::<6, 2>(N_INTRINSIC, 0)
+        .copy_from(&j_pose.transpose());
+    ci
 }
 
 /// One view's corners for [`neighbours_part`]: their mapped, weighted residuals `yᵢ = Eᵢ Wᵢ rᵢ`
