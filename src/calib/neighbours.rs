@@ -5,8 +5,12 @@
 //! image noise moves neighbouring corners together (issue 29: +0.08 to +0.17 between grid
 //! neighbours on the realistic and hard render sets, `examples/sigma_coverage`), and a lens or
 //! board the model does not fit moves a face's neighbouring corners alike. A covariance that takes
-//! the corners as independent is then too small; the equal-weight sandwich (`lm.rs`) adds the
-//! neighbours' residual cross-products to it.
+//! the corners as independent is then too small; the solver's sandwich covariance (`lm.rs`, both
+//! weightings) adds the neighbours' residual cross-products to it.
+//!
+//! Written here rather than with a k-d tree crate (`kiddo`, `rstar`): a view holds a few hundred
+//! points, which a sorted sweep pairs in about 65 ns each (0.10 ms for the solve bench's 1540), and
+//! the rule (each point's own nearest distance, both ends agreeing) is a few lines on top of it.
 
 use nalgebra::Vector3;
 
