@@ -1015,27 +1015,35 @@ fn sandwich_covariance(
             mapped.push((&t * x, pairs));
         }
     }
-    let own = if problem.equal {
+    // The covariance with the corners taken as independent, `S⁻¹ M S⁻¹`, and `M⁻¹` for the test of
+    // the neighbours' part.
+    let (independent, own_inv) = if problem.equal {
         // The corners' own part, at the scale of their covariances the residuals say.
         let dof = count.saturating_sub(n.n_params()).max(1) as f64;
-        own * (chi2 / dof)
+        let own = own * (chi2 / dof);
+        let own_inv = own.clone().cholesky()?.inverse();
+        (&marginal.s_inv * own * &marginal.s_inv, own_inv)
     } else {
-        marginal.s_inv.clone().cholesky()?.inverse() * marginal.sigma2
+        // `M = σ̂² S`: the covariance as solved, and `M⁻¹ = S⁻¹ / σ̂²` without inverting twice.
+        (
+            marginal.covariance.clone(),
+            &marginal.s_inv / marginal.sigma2,
+        )
     };
-    let middle = match neighbours_part(&own, &mapped) {
+    let out = match neighbours_part(&own_inv, &mapped) {
         Some(pairs_part) => {
-            let with_pairs = &own + pairs_part;
-            // An indefinite total falls back to the corners taken as independent.
+            let with_pairs = &independent + &marginal.s_inv * pairs_part * &marginal.s_inv;
+            // An indefinite total (`M + N`, as `S⁻¹` is definite) falls back to the corners taken
+            // as independent.
             if with_pairs.clone().cholesky().is_some() {
                 with_pairs
             } else {
-                own
+                independent
             }
         }
         None if !problem.equal => return None,
-        None => own,
+        None => independent,
     };
-    let out = &marginal.s_inv * middle * &marginal.s_inv;
     out.iter().all(|x| x.is_finite()).then_some(out)
 }
 
@@ -1062,19 +1070,18 @@ type MappedView = (DMatrix<f64>, Vec<(usize, usize)>);
 
 /// The neighbours' part `N = Σ_pairs (yₐ yᵦᵀ + yᵦ yₐᵀ)` of the sandwich's middle (`y` the corners'
 /// mapped, weighted residuals, a view's in the columns of its matrix, with its neighbour pairs),
-/// when it is significant; `None` when it is not. Where neighbours are independent `N` is noise
-/// about 0, which would shrink σ as often as grow it (and, σ entering χ² inversely, make them too
-/// small on average: an equal-weight solve of independent corners, 1/3 of them 5× noisier, went
-/// from χ² 4.98 to 5.40 against the truth). The test: `T = tr(own⁻¹ N) = Σ 2 yₐᵀ own⁻¹ yᵦ`, the
+/// when it is significant against the corners' own part `own` (given as `own⁻¹`); `None` when it
+/// is not. Where neighbours are independent `N` is noise about 0, which would shrink σ as often as
+/// grow it (and, σ entering χ² inversely, make them too small on average: an equal-weight solve of
+/// independent corners, 1/3 of them 5× noisier, went from χ² 4.98 to 5.40 against the truth). The test: `T = tr(own⁻¹ N) = Σ 2 yₐᵀ own⁻¹ yᵦ`, the
 /// variance `N` adds relative to the corners' own, counts when it exceeds twice its standard error
 /// under independence, `√(Σ (2 yₐᵀ own⁻¹ yᵦ)²)`.
-fn neighbours_part(own: &DMatrix<f64>, mapped: &[MappedView]) -> Option<DMatrix<f64>> {
-    let q = own.nrows();
-    let inv = own.clone().cholesky()?.inverse();
+fn neighbours_part(own_inv: &DMatrix<f64>, mapped: &[MappedView]) -> Option<DMatrix<f64>> {
+    let q = own_inv.nrows();
     let (mut total, mut var) = (0.0, 0.0);
     let mut part = DMatrix::<f64>::zeros(q, q);
     for (y, pairs) in mapped {
-        let u = &inv * y;
+        let u = own_inv * y;
         let mut sums = DMatrix::<f64>::zeros(q, y.ncols());
         for &(a, b) in pairs {
             let p = 2.0 * u.column(a).dot(&y.column(b));
