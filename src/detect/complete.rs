@@ -231,8 +231,8 @@ fn extrapolate(cells: &Cells, r: i32, c: i32) -> Option<Vector2<f64>> {
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Shade {
     pub uv: Vector2<f64>,
-    pub level: f64,
-    pub contrast: f64,
+    /// The squares' level and half-contrast ([`Refined::squares`]).
+    pub squares: Option<[f64; 2]>,
     pub shift: Matrix2<f64>,
 }
 
@@ -240,8 +240,7 @@ impl Shade {
     pub fn of(r: &Refined) -> Shade {
         Shade {
             uv: r.uv,
-            level: r.level,
-            contrast: r.contrast,
+            squares: r.squares,
             shift: r.shading_shift,
         }
     }
@@ -253,12 +252,23 @@ pub const SHADING_RADIUS: i32 = 2;
 pub const SHADING_MIN_POINTS: usize = 5;
 
 /// The relative gradient (1/px, image axes) of the brightness at fitted corner `(r, c)`: planes
-/// fitted by least squares to the levels `m` and half-contrasts `|h|` of the corners within
-/// [`SHADING_RADIUS`] lattice steps, and the one scale `γ` that best explains both slopes (`∇m ≈
-/// m·γ`, `∇|h| ≈ |h|·γ`, see [`super::refine::Refined::shading_shift`]). Vignetting and the light
-/// vary slowly across a board; a corner window sees the slope, which its constant-level model does
-/// not (measured on renders with vignetting 0.3 at 1920×1080, noise-free: corner RMS below 75°
-/// 0.0044 px against 0.0021 px without vignetting). `None` with too few fits or a degenerate layout.
+/// fitted by least squares to the squares' levels `m` and half-contrasts `|h|` around the corners
+/// within [`SHADING_RADIUS`] lattice steps ([`Refined::squares`]), and the one scale `γ` that best
+/// explains both slopes (`∇m ≈ m·γ`, `∇|h| ≈ |h|·γ`, see [`super::refine::Refined::shading_shift`]).
+/// Vignetting and the light vary slowly across a board; a corner window sees the slope, which its
+/// constant-level model does not (measured on renders with vignetting 0.3 at 1920×1080,
+/// noise-free: corner RMS below 75° 0.0044 px against 0.0021 px without vignetting). `None` with
+/// too few fits or a degenerate layout.
+///
+/// The levels are the squares' flat parts, not the junction model's fitted `m` and `h`: those take
+/// up the model's mismatch with the blurred junction, which changes with the window's shape, and so
+/// from corner to corner across a receding face. On renders without any shading (the realistic
+/// set with vignetting 0 and gamma 1, noise-free, 32×32 supersampling, its first 12 views) that
+/// made a gradient where there is none: the correction moved the interior corners of faces at
+/// 60–75° outward across the receding direction by 0.16 mpx on average (−0.03 mpx with the
+/// squares' levels, −0.02 mpx with no correction at all), and over a thousand corners that biased
+/// fx by −0.0146 px (−0.0074 px with the squares' levels). With the set's own shading, −0.0153 →
+/// −0.0028 px (`examples/receding_bias`, issue 29).
 pub(super) fn shading_gradient(
     shades: &BTreeMap<(i32, i32), Shade>,
     r: i32,
@@ -271,14 +281,17 @@ pub(super) fn shading_gradient(
     let mut n = 0;
     for dr in -SHADING_RADIUS..=SHADING_RADIUS {
         for dc in -SHADING_RADIUS..=SHADING_RADIUS {
-            let Some(s) = shades.get(&(r + dr, c + dc)) else {
+            let Some((s, [level, contrast])) = shades
+                .get(&(r + dr, c + dc))
+                .and_then(|s| Some((s, s.squares?)))
+            else {
                 continue;
             };
             let d = s.uv - centre;
             let row = Vector3::new(1.0, d.x, d.y);
             ata += row * row.transpose();
-            atm += row * s.level;
-            ath += row * s.contrast;
+            atm += row * level;
+            ath += row * contrast;
             n += 1;
         }
     }
