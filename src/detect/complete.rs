@@ -267,8 +267,8 @@ pub const SHADING_MIN_POINTS: usize = 5;
 /// made a gradient where there is none: the correction moved the interior corners of faces at
 /// 60–75° outward across the receding direction by 0.16 mpx on average (−0.03 mpx with the
 /// squares' levels, −0.02 mpx with no correction at all), and over a thousand corners that biased
-/// fx by −0.0146 px (−0.0074 px with the squares' levels). With the set's own shading, −0.0153 →
-/// −0.0028 px (`examples/receding_bias`, issue 29).
+/// fx by −0.0146 px (−0.0073 px with the squares' levels). With the set's own shading, −0.0153 →
+/// −0.0032 px (`examples/receding_bias`, issue 29).
 pub(super) fn shading_gradient(
     shades: &BTreeMap<(i32, i32), Shade>,
     r: i32,
