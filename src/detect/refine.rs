@@ -506,6 +506,13 @@ struct Model {
 }
 
 impl Model {
+    /// The signed distances `(d₁, d₂)` of the window point `(x, y)` from the two lines.
+    #[inline(always)]
+    fn distances(&self, x: f32, y: f32) -> (f32, f32) {
+        let (dx, dy) = (x - self.cx, y - self.cy);
+        (-self.s1 * dx + self.c1 * dy, -self.s2 * dx + self.c2 * dy)
+    }
+
     fn new(p: &P) -> Model {
         let (s1, c1) = p[2].sin_cos();
         let (s2, c2) = p[3].sin_cos();
@@ -768,9 +775,7 @@ fn quadrants_alternate(win: &Window, p: &P, min_separation: f64) -> bool {
     for grp in win.groups() {
         let (xs, ys, vs, ws) = (grp.x, grp.y, grp.v, grp.w);
         for i in 0..LANES {
-            let (dx, dy) = (xs[i] - md.cx, ys[i] - md.cy);
-            let d1 = -md.s1 * dx + md.c1 * dy;
-            let d2 = -md.s2 * dx + md.c2 * dy;
+            let (d1, d2) = md.distances(xs[i], ys[i]);
             let far1 = if d1.abs() < s { 0.0 } else { 1.0 };
             let far2 = if d2.abs() < s { 0.0 } else { 1.0 };
             let inside = ws[i] * far1 * far2;
@@ -821,9 +826,7 @@ fn square_levels(win: &Window, p: &P) -> Option<[f64; 2]> {
     for grp in win.groups() {
         let (xs, ys, vs, ws) = (grp.x, grp.y, grp.v, grp.w);
         for i in 0..LANES {
-            let (dx, dy) = (xs[i] - md.cx, ys[i] - md.cy);
-            let d1 = -md.s1 * dx + md.c1 * dy;
-            let d2 = -md.s2 * dx + md.c2 * dy;
+            let (d1, d2) = md.distances(xs[i], ys[i]);
             // Selects, not branches: the loop stays vectorised.
             let far1 = if d1.abs() < flat { 0.0 } else { 1.0 };
             let far2 = if d2.abs() < flat { 0.0 } else { 1.0 };
@@ -859,9 +862,8 @@ fn initial_contrast(win: &Window, p: &P) -> Option<f64> {
     for grp in win.groups() {
         let (xs, ys, vs, ws) = (grp.x, grp.y, grp.v, grp.w);
         for i in 0..LANES {
-            let (dx, dy) = (xs[i] - md.cx, ys[i] - md.cy);
-            let g1 = tanh((-md.s1 * dx + md.c1 * dy) * md.inv_s);
-            let g2 = tanh((-md.s2 * dx + md.c2 * dy) * md.inv_s);
+            let (d1, d2) = md.distances(xs[i], ys[i]);
+            let (g1, g2) = (tanh(d1 * md.inv_s), tanh(d2 * md.inv_s));
             let gg = ws[i] * g1 * g2;
             num[i] += gg * (vs[i] - md.m);
             den[i] += gg * gg;
@@ -1294,6 +1296,22 @@ mod tests {
         })
     }
 
+    /// [`xjunction`] blurred as a lens does: before the pixels integrate the scene (the scene at 8×
+    /// resolution blurred by `sigma` output pixels, then averaged over each pixel's 8×8 block).
+    fn lens_xjunction(size: u32, c: Vector2<f64>, u: f64, v: f64, sigma: f32) -> GrayImage {
+        let fine = xjunction(size * 8, c * 8.0 + Vector2::new(3.5, 3.5), u, v);
+        let fine = image::imageops::blur(&fine, 8.0 * sigma);
+        GrayImage::from_fn(size, size, |x, y| {
+            let mut acc = 0u32;
+            for i in 0..8 {
+                for j in 0..8 {
+                    acc += u32::from(fine.get_pixel(8 * x + i, 8 * y + j).0[0]);
+                }
+            }
+            image::Luma([((f64::from(acc) / 64.0).round()) as u8])
+        })
+    }
+
     #[test]
     fn finds_an_oblique_junction_to_a_hundredth_of_a_pixel() {
         let c = Vector2::new(20.37, 19.81);
@@ -1305,19 +1323,7 @@ mod tests {
         let r = refine(&img, Vector2::new(20.0, 20.0), a, b).unwrap();
         assert!((r.uv - c).norm() < 0.02, "{:?} vs {c:?}", r.uv);
         assert!(r.sigma_px < 0.05, "{r:?}");
-        // Blurred as a lens does: before the pixels integrate the scene (the scene at 8× resolution
-        // blurred by σ = 1 output pixel, then averaged over each pixel's 8×8 block).
-        let fine = xjunction(41 * 8, c * 8.0 + Vector2::new(3.5, 3.5), u, v);
-        let fine = image::imageops::blur(&fine, 8.0);
-        let blurred = GrayImage::from_fn(41, 41, |x, y| {
-            let mut acc = 0u32;
-            for i in 0..8 {
-                for j in 0..8 {
-                    acc += u32::from(fine.get_pixel(8 * x + i, 8 * y + j).0[0]);
-                }
-            }
-            image::Luma([((f64::from(acc) / 64.0).round()) as u8])
-        });
+        let blurred = lens_xjunction(41, c, u, v, 1.0);
         let r = refine(&blurred, Vector2::new(20.0, 20.0), a, b).unwrap();
         assert!((r.uv - c).norm() < 0.01, "{:?} vs {c:?}", r.uv);
     }
@@ -1331,17 +1337,7 @@ mod tests {
     fn squares_read_the_true_levels() {
         let c = Vector2::new(40.37, 39.81);
         for (u, v) in [(0.3_f64, 1.3_f64), (0.2, 0.75)] {
-            let fine = xjunction(81 * 8, c * 8.0 + Vector2::new(3.5, 3.5), u, v);
-            let fine = image::imageops::blur(&fine, 12.0);
-            let img = GrayImage::from_fn(81, 81, |x, y| {
-                let mut acc = 0u32;
-                for i in 0..8 {
-                    for j in 0..8 {
-                        acc += u32::from(fine.get_pixel(8 * x + i, 8 * y + j).0[0]);
-                    }
-                }
-                image::Luma([((f64::from(acc) / 64.0).round()) as u8])
-            });
+            let img = lens_xjunction(81, c, u, v, 1.5);
             let a = Vector2::new(u.cos(), u.sin()) * 30.0;
             let b = Vector2::new(v.cos(), v.sin()) * 30.0;
             let r = refine(&img, Vector2::new(40.0, 40.0), a, b).unwrap();
