@@ -54,12 +54,9 @@ fn main() {
             *v = 0.0;
         }
     }
-    settings.supersample = std::env::var("SS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(16);
     settings.noise_sigma = 0.0;
     let knob = |name: &str| std::env::var(name).ok().map(|v| v.parse::<f64>().unwrap());
+    settings.supersample = knob("SS").map_or(16, |v| v as u32);
     if let Some(v) = knob("VIG") {
         settings.vignetting = v;
     }
@@ -71,10 +68,7 @@ fn main() {
     }
     let mut finder = CornerFinder::new().unwrap();
     let mut all = Vec::new();
-    let block: usize = std::env::var("BLOCK")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(0);
+    let block = knob("BLOCK").map_or(0, |v| v as usize);
     let poses = set.poses(&rig, views * (block + 1));
     let mut solve_views = Vec::new();
     for pose in &poses[views * block..] {

@@ -175,11 +175,9 @@ pub struct Refined {
     /// curvatures `κ` is `uv + curvature_shift·κ`. Line `i` runs along `uᵢ` (`a` or `b`) with left
     /// normal `nᵢ = (−uᵢ.y, uᵢ.x)`; `κᵢ > 0` bends it towards `nᵢ`: `q = c + t·uᵢ + κᵢ·t²/2·nᵢ`.
     pub curvature_shift: Matrix2<f64>,
-    /// Fitted level `m` (grey levels): the mean of the four squares' levels at the corner.
-    pub level: f64,
     /// The squares' mean level and half-contrast (grey levels), measured on their flat parts (see
     /// [`SQUARE_WIDTHS`]), `None` where either colour has too few such pixels in the window. Unlike
-    /// `level` and `contrast`, these do not take up the model's mismatch with the blurred junction,
+    /// the fitted level `m` and `contrast`, these do not take up the model's mismatch with the blurred junction,
     /// which changes with the window's shape (across a receding face, from corner to corner): the
     /// brightness gradient [`Self::shading_shift`] is applied with is measured on them.
     pub squares: Option<[f64; 2]>,
@@ -1168,7 +1166,6 @@ fn refine_in(
         residual,
         edge_width: p[4],
         curvature_shift,
-        level: p[5],
         squares: square_levels(coarse_win, &p),
         shading_shift,
     })
