@@ -1603,6 +1603,7 @@ fn detect_face(
                 uv: fit.uv,
                 sigma_px: fit.sigma_px,
                 cov: fit.cov,
+                edge_px: fit.edge_width,
             });
         }
     }

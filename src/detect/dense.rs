@@ -11,6 +11,8 @@ pub(super) struct Dense {
     pub(super) sigma: Vec<f64>,
     /// Each point's covariance (px²).
     pub(super) cov: Vec<Matrix2<f64>>,
+    /// Each point's fitted edge width (px; NaN where unknown).
+    pub(super) edge: Vec<f64>,
 }
 
 impl Dense {
@@ -28,12 +30,14 @@ impl Dense {
         let mut uv = Vec::with_capacity(self.uv.len());
         let mut sigma = Vec::with_capacity(self.uv.len());
         let mut cov = Vec::with_capacity(self.uv.len());
+        let mut edge = Vec::with_capacity(self.uv.len());
         for r in 0..rows {
             for c in 0..cols {
                 let (r0, c0) = source(r, c);
                 uv.push(self.uv[r0 * self.cols + c0]);
                 sigma.push(self.sigma[r0 * self.cols + c0]);
                 cov.push(self.cov[r0 * self.cols + c0]);
+                edge.push(self.edge[r0 * self.cols + c0]);
             }
         }
         Dense {
@@ -42,6 +46,7 @@ impl Dense {
             uv,
             sigma,
             cov,
+            edge,
         }
     }
 

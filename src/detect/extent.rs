@@ -450,6 +450,7 @@ mod tests {
             cols: cols.count(),
             sigma: vec![0.05; uv.len()],
             cov: vec![nalgebra::Matrix2::from_diagonal_element(0.0025); uv.len()],
+            edge: vec![1.0; uv.len()],
             uv,
         }
     }

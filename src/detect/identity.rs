@@ -356,6 +356,7 @@ fn detection(rig: &Rig, w: &Whole, m: Mapping, contrast: f64) -> (FaceDetection,
             uv: d.at(r, c),
             sigma_px: d.sigma[r * d.cols + c],
             cov: d.cov[r * d.cols + c],
+            edge_px: d.edge[r * d.cols + c],
         })
         // Positions held for the extent only (no window fits there) are no observations.
         .filter(|c| c.sigma_px.is_finite())

@@ -103,6 +103,7 @@ pub fn label(
             uv: g.cells.iter().flatten().map(|f| f.uv).collect(),
             sigma: g.cells.iter().flatten().map(|f| f.sigma_px).collect(),
             cov: g.cells.iter().flatten().map(|f| f.cov).collect(),
+            edge: g.cells.iter().flatten().map(|f| f.edge_px).collect(),
         };
         if dense.handedness() > 0.0 {
             dense = dense.transposed();

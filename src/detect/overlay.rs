@@ -462,6 +462,7 @@ mod tests {
                 uv: Vector2::new(origin[0] + c as f64 * step, origin[1] + r as f64 * step),
                 sigma_px: 0.01,
                 cov: nalgebra::Matrix2::from_diagonal_element(1e-4),
+                edge_px: 1.0,
             })
             .collect();
         FaceDetection {

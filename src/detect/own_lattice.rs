@@ -177,6 +177,7 @@ mod tests {
                     uv: grid.get(row, col).map(|f| f.uv).unwrap_or_default(),
                     sigma_px: 0.01,
                     cov: nalgebra::Matrix2::from_diagonal_element(1e-4),
+                    edge_px: 1.0,
                 })
                 .collect(),
             colour_contrast: 100.0,

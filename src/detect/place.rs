@@ -72,6 +72,7 @@ struct GridCorner {
     uv: Vector2<f64>,
     sigma_px: f64,
     cov: nalgebra::Matrix2<f64>,
+    edge_px: f64,
 }
 
 /// A grid that could not be labelled as a whole face, with the reason it was not.
@@ -97,6 +98,7 @@ impl Partial {
                     uv: f.uv,
                     sigma_px: f.sigma_px,
                     cov: f.cov,
+                    edge_px: f.edge_px,
                 })
             })
             .collect();
@@ -524,6 +526,7 @@ impl Partial {
             cols: best.1,
             sigma: vec![0.0; uv.len()],
             cov: vec![nalgebra::Matrix2::zeros(); uv.len()],
+            edge: vec![0.0; uv.len()],
             uv,
         };
         let b = look_beyond(img, &lines, Side::FirstRow);
@@ -699,6 +702,7 @@ fn placed_corners(rig: &Rig, p: &Partial, pl: &Placement) -> Vec<LabelledCorner>
                 uv: g.uv,
                 sigma_px: g.sigma_px,
                 cov: g.cov,
+                edge_px: g.edge_px,
             }
         })
         .collect()

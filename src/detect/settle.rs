@@ -547,6 +547,7 @@ fn labelled(
                 uv: g.uv,
                 sigma_px,
                 cov: Matrix2::from_diagonal_element(sigma_px * sigma_px),
+                edge_px: 0.0,
             }
         })
         .collect();

@@ -54,6 +54,7 @@ pub fn detection_from_view(view: &RawView, rig: &Rig, width: u32, height: u32) -
             uv: Vector2::from(p.uv),
             sigma_px: 0.0,
             cov: nalgebra::Matrix2::zeros(),
+            edge_px: 0.0,
         };
         match faces.iter_mut().find(|f| f.face == fi) {
             Some(f) => f.corners.push(corner),

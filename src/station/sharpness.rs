@@ -241,6 +241,7 @@ mod tests {
                     uv: Vector2::new(sq * (c + 1) as f64 - 0.5, sq * (r + 1) as f64 - 0.5),
                     sigma_px: 0.01,
                     cov: nalgebra::Matrix2::from_diagonal_element(1e-4),
+                    edge_px: 1.0,
                 });
             }
         }
