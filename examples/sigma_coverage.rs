@@ -59,6 +59,13 @@ fn main() {
     if let Some(ss) = std::env::var("SS").ok().and_then(|s| s.parse().ok()) {
         settings.supersample = ss;
     }
+    // `NOISE=x`: the set's noise σ scaled by x (0: noise-free, the corners' fixed error alone).
+    if let Some(x) = std::env::var("NOISE")
+        .ok()
+        .and_then(|s| s.parse::<f64>().ok())
+    {
+        settings.noise_sigma *= x;
+    }
     // `POOL=P`: each realisation sees `VIEWS` poses drawn anew from a pool of P (rendered once), so
     // that the corners' noise-free errors, fixed for a given pose, vary between realisations as
     // they do between one user's calibration and the next; without it every realisation sees the
