@@ -9,7 +9,8 @@
 //! fit (issue 29); `equal` weights every corner alike (the solve before issue 29).
 //! `SET` is `realistic` or `hard` ([`EvalSet`]); `SS=n` renders with n×n supersampling; `POOL=P`
 //! draws each realisation's views from P poses; `REFIT=n` fits the corners again through the solved
-//! lens n times before the final solve, as `cubecal calibrate` does. Prints per parameter: coverage of ±2σ, mean and
+//! lens n times before the final solve, as `cubecal calibrate` does; `NOISE=x` scales the set's
+//! pixel noise (0: the corners' noise-free error alone). Prints per parameter: coverage of ±2σ, mean and
 //! standard deviation of the z-scores `(estimate − truth)/σ` (mean ≠ 0: a bias; std > 1: σ too small),
 //! the empirical spread of the estimates against the mean reported σ, and the fit's noise estimate
 //! against the detector's own per-corner σ.

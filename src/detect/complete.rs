@@ -9,6 +9,9 @@
 //! accepted only when it converges near the prediction and its four quadrants alternate dark / bright
 //! (so the board's outer edge, a margin or the neighbouring face never pass for a corner); the lattice
 //! cannot grow beyond the largest face of the rig in either direction.
+//! A corner the assembled grid captured from a neighbouring junction (a face at 75°+ in low
+//! contrast and noise) lies a step off the homography of the cells around it: it is dropped and
+//! recovered afresh from the lattice's prediction (`drop_off_lattice`).
 //!
 //! Last, each corner is corrected for the curvature of its two lattice lines (lens distortion), which
 //! the straight-edge fit does not model: the curvature is measured by a parabola through the fitted
