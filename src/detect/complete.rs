@@ -117,7 +117,24 @@ type Cells = BTreeMap<(i32, i32), Fitted>;
 /// neighbours are known, else the nearest pair of consecutive filled cells on that line (up to three
 /// cells away), else the same step on a parallel line next to it.
 fn step_along(cells: &Cells, r: i32, c: i32, dr: i32, dc: i32) -> Option<Vector2<f64>> {
-    let at = |k: i32| cells.get(&(r + k * dr, c + k * dc)).map(|f| f.uv);
+    step_along_in(&|r, c| cells.get(&(r, c)).map(|f| f.uv), r, c, dr, dc, true)
+}
+
+/// [`step_along`] on the lattice `get`, with the cell `(r, c)` itself taken as empty unless `own`.
+fn step_along_in(
+    get: &impl Fn(i32, i32) -> Option<Vector2<f64>>,
+    r: i32,
+    c: i32,
+    dr: i32,
+    dc: i32,
+    own: bool,
+) -> Option<Vector2<f64>> {
+    let at = |k: i32| {
+        if k == 0 && !own {
+            return None;
+        }
+        get(r + k * dr, c + k * dc)
+    };
     if let (Some(a), Some(b)) = (at(-1), at(1)) {
         return Some((b - a) / 2.0);
     }
@@ -127,9 +144,9 @@ fn step_along(cells: &Cells, r: i32, c: i32, dr: i32, dc: i32) -> Option<Vector2
         }
     }
     [(dc, dr), (-dc, -dr)].iter().find_map(|&(or, oc)| {
-        let a = cells.get(&(r + or, c + oc))?;
-        let b = cells.get(&(r + or + dr, c + oc + dc))?;
-        Some(b.uv - a.uv)
+        let a = get(r + or, c + oc)?;
+        let b = get(r + or + dr, c + oc + dc)?;
+        Some(b - a)
     })
 }
 
@@ -198,19 +215,17 @@ pub const LATTICE_CHECK_MIN_CELLS: usize = 8;
 
 /// How far `uv` lies from the image of the lattice position `(r, c)` under the homography of the
 /// cells around it ([`local_homography`]), in lattice steps along the grid's two axes (the larger
-/// of the two); `None` where too few cells surround it. `cells` must not hold `(r, c)` itself
-/// (its steps would be taken from it).
+/// of the two), `(r, c)`'s own cell left out; `None` where too few cells surround it.
 fn lattice_deviation(
-    cells: &Cells,
+    get: &impl Fn(i32, i32) -> Option<Vector2<f64>>,
     r: i32,
     c: i32,
     uv: Vector2<f64>,
-    predict: impl Fn(&Cells, i32, i32) -> Option<Vector2<f64>>,
+    p: Vector2<f64>,
 ) -> Option<f64> {
-    let p = predict(cells, r, c)?;
     let steps = Matrix2::from_columns(&[
-        step_along(cells, r, c, 0, 1)?,
-        step_along(cells, r, c, 1, 0)?,
+        step_along_in(get, r, c, 0, 1, false)?,
+        step_along_in(get, r, c, 1, 0, false)?,
     ]);
     let st = steps.try_inverse()? * (uv - p);
     st.iter().all(|v| v.is_finite()).then(|| st.abs().max())
@@ -230,28 +245,39 @@ fn lattice_deviation(
 fn drop_off_lattice(cells: &mut Cells) -> Vec<(i32, i32)> {
     let mut gone = Vec::new();
     loop {
-        let keys: Vec<(i32, i32)> = cells.keys().copied().collect();
+        let Some((r0, r1, c0, c1)) = bounds(cells) else {
+            return gone;
+        };
+        // The lattice as a dense array for the screen's lookups (a tree's, per corner, cost more
+        // than the screen's arithmetic).
+        let cols = (c1 - c0 + 1) as usize;
+        let mut dense = vec![None; (r1 - r0 + 1) as usize * cols];
+        for (&(r, c), f) in cells.iter() {
+            dense[(r - r0) as usize * cols + (c - c0) as usize] = Some(f.uv);
+        }
+        let get = |r: i32, c: i32| {
+            if r < r0 || r > r1 || c < c0 || c > c1 {
+                return None;
+            }
+            dense[(r - r0) as usize * cols + (c - c0) as usize]
+        };
         let mut worst: Option<(f64, (i32, i32))> = None;
-        for key in keys {
-            let Some(f) = cells.remove(&key) else {
-                continue;
-            };
+        for (&(r, c), f) in cells.iter() {
             // Screened by the lines through it (a few extrapolations), judged by the homography
             // of the cells around it only when the screen fails: the homography for every corner
             // cost 7 % of the detector's instructions, screened 1 % (`cargo bench --bench detect`
             // under callgrind).
-            let (r, c) = key;
-            let off = |d: &f64| *d > LATTICE_SCREEN;
-            if lattice_deviation(cells, r, c, f.uv, extrapolate).is_none_or(|d| off(&d))
-                && let Some(d) = lattice_deviation(cells, r, c, f.uv, |cells, r, c| {
-                    local_homography(cells, r, c, LATTICE_CHECK_MIN_CELLS)
-                })
+            let screened = extrapolate_in(&get, r, c)
+                .and_then(|p| lattice_deviation(&get, r, c, f.uv, p))
+                .is_some_and(|d| d <= LATTICE_SCREEN);
+            if !screened
+                && let Some(p) = local_homography(cells, r, c, LATTICE_CHECK_MIN_CELLS)
+                && let Some(d) = lattice_deviation(&get, r, c, f.uv, p)
                 && d > MAX_LATTICE_DEVIATION
                 && worst.is_none_or(|(w, _)| d > w)
             {
-                worst = Some((d, key));
+                worst = Some((d, (r, c)));
             }
-            cells.insert(key, f);
         }
         let Some((_, key)) = worst else {
             return gone;
@@ -292,10 +318,19 @@ fn image_of_origin(plane: &[Vector2<f64>], image: &[Vector2<f64>]) -> Option<Vec
 
 /// Predicted position of an empty cell from the filled cells before it along rows and columns.
 fn extrapolate(cells: &Cells, r: i32, c: i32) -> Option<Vector2<f64>> {
+    extrapolate_in(&|r, c| cells.get(&(r, c)).map(|f| f.uv), r, c)
+}
+
+/// [`extrapolate`] on the lattice `get` (the cell `(r, c)` itself is never read).
+fn extrapolate_in(
+    get: &impl Fn(i32, i32) -> Option<Vector2<f64>>,
+    r: i32,
+    c: i32,
+) -> Option<Vector2<f64>> {
     let mut sum = Vector2::zeros();
     let mut n = 0.0;
     for (dr, dc) in [(0, 1), (0, -1), (1, 0), (-1, 0)] {
-        let at = |k: i32| cells.get(&(r - k * dr, c - k * dc)).map(|f| f.uv);
+        let at = |k: i32| get(r - k * dr, c - k * dc);
         let p = match (at(1), at(2), at(3)) {
             (Some(p1), Some(p2), Some(p3)) => 3.0 * p1 - 3.0 * p2 + p3,
             (Some(p1), Some(p2), None) => 2.0 * p1 - p2,
@@ -306,8 +341,8 @@ fn extrapolate(cells: &Cells, r: i32, c: i32) -> Option<Vector2<f64>> {
     }
     // Interior holes: the mean of both neighbours along a line.
     for (dr, dc) in [(0, 1), (1, 0)] {
-        if let (Some(a), Some(b)) = (cells.get(&(r - dr, c - dc)), cells.get(&(r + dr, c + dc))) {
-            sum += (a.uv + b.uv) / 2.0;
+        if let (Some(a), Some(b)) = (get(r - dr, c - dc), get(r + dr, c + dc)) {
+            sum += (a + b) / 2.0;
             n += 1.0;
         }
     }
