@@ -170,13 +170,19 @@ pub const LOCAL_RADIUS: i32 = 3;
 /// [`LOCAL_RADIUS`] lines: locally, perspective is exact and lens distortion small), else extrapolation
 /// along rows and columns.
 fn predict(cells: &Cells, r: i32, c: i32) -> Option<Vector2<f64>> {
-    local_homography(cells, r, c, 6).or_else(|| extrapolate(cells, r, c))
+    local_homography(&|r, c| cells.get(&(r, c)).map(|f| f.uv), r, c, 6)
+        .or_else(|| extrapolate(cells, r, c))
 }
 
-/// The image of cell `(r, c)` under a homography fitted to at least `min_cells` filled cells around
-/// it (within [`LOCAL_RADIUS`] lines, on two rows and two columns at least; the cell itself left
-/// out).
-fn local_homography(cells: &Cells, r: i32, c: i32, min_cells: usize) -> Option<Vector2<f64>> {
+/// The image of cell `(r, c)` under a homography fitted to at least `min_cells` filled cells of the
+/// lattice `get` around it (within [`LOCAL_RADIUS`] lines, on two rows and two columns at least;
+/// the cell itself left out).
+fn local_homography(
+    get: &impl Fn(i32, i32) -> Option<Vector2<f64>>,
+    r: i32,
+    c: i32,
+    min_cells: usize,
+) -> Option<Vector2<f64>> {
     let mut plane = Vec::new();
     let mut image = Vec::new();
     let (mut rows, mut cols) = (Vec::new(), Vec::new());
@@ -185,9 +191,9 @@ fn local_homography(cells: &Cells, r: i32, c: i32, min_cells: usize) -> Option<V
             if (dr, dc) == (0, 0) {
                 continue;
             }
-            if let Some(f) = cells.get(&(r + dr, c + dc)) {
+            if let Some(uv) = get(r + dr, c + dc) {
                 plane.push(Vector2::new(f64::from(dc), f64::from(dr)));
-                image.push(f.uv);
+                image.push(uv);
                 if !rows.contains(&dr) {
                     rows.push(dr);
                 }
@@ -213,9 +219,9 @@ pub const LATTICE_SCREEN: f64 = 0.2;
 /// Fewest filled cells around a corner for [`drop_off_lattice`] to judge it.
 pub const LATTICE_CHECK_MIN_CELLS: usize = 8;
 
-/// How far `uv` lies from the image of the lattice position `(r, c)` under the homography of the
-/// cells around it ([`local_homography`]), in lattice steps along the grid's two axes (the larger
-/// of the two), `(r, c)`'s own cell left out; `None` where too few cells surround it.
+/// How far `uv` lies from `p`, a prediction of the lattice position `(r, c)`, in lattice steps of
+/// `get` along the grid's two axes (the larger of the two; the steps taken without `(r, c)`'s own
+/// cell); `None` where no steps can be taken.
 fn lattice_deviation(
     get: &impl Fn(i32, i32) -> Option<Vector2<f64>>,
     r: i32,
@@ -265,13 +271,13 @@ fn drop_off_lattice(cells: &mut Cells) -> Vec<(i32, i32)> {
         for (&(r, c), f) in cells.iter() {
             // Screened by the lines through it (a few extrapolations), judged by the homography
             // of the cells around it only when the screen fails: the homography for every corner
-            // cost 7 % of the detector's instructions, screened 1 % (`cargo bench --bench detect`
-            // under callgrind).
+            // cost 7 % of the detector's instructions, screened 0.5 % (`cargo bench --bench
+            // detect` under callgrind).
             let screened = extrapolate_in(&get, r, c)
                 .and_then(|p| lattice_deviation(&get, r, c, f.uv, p))
                 .is_some_and(|d| d <= LATTICE_SCREEN);
             if !screened
-                && let Some(p) = local_homography(cells, r, c, LATTICE_CHECK_MIN_CELLS)
+                && let Some(p) = local_homography(&get, r, c, LATTICE_CHECK_MIN_CELLS)
                 && let Some(d) = lattice_deviation(&get, r, c, f.uv, p)
                 && d > MAX_LATTICE_DEVIATION
                 && worst.is_none_or(|(w, _)| d > w)
@@ -478,6 +484,85 @@ pub(super) fn lattice_curvature(cells: &Cells, r: i32, c: i32, dr: i32, dc: i32)
     kappa.is_finite().then_some(kappa)
 }
 
+/// The fitted corners of a grid being completed, with what each fit said of its lattice lines'
+/// curvature and its shading, and which empty cells were tried with how many neighbours.
+struct Lattice {
+    cells: Cells,
+    shifts: BTreeMap<(i32, i32), Matrix2<f64>>,
+    shades: BTreeMap<(i32, i32), Shade>,
+    tried: BTreeMap<(i32, i32), usize>,
+}
+
+impl Lattice {
+    /// Recovers missing corners, ring by ring, until nothing changes; returns how many. A recovered
+    /// corner must look like the grid's own ([`like_grid`] with `grid` = its median contrast and
+    /// residual); the lattice may span at most `max_lines` rows and columns.
+    fn recover(&mut self, img: &GrayImage, grid: (f64, f64), max_lines: usize) -> usize {
+        let Lattice {
+            cells,
+            shifts,
+            shades,
+            tried,
+        } = self;
+        let mut recovered = 0;
+        while let Some(bounds) = bounds(cells) {
+            let mut candidates: Vec<(i32, i32)> = Vec::new();
+            for &(r, c) in cells.keys() {
+                for (dr, dc) in [(0, 1), (0, -1), (1, 0), (-1, 0)] {
+                    let t = (r + dr, c + dc);
+                    if cells.contains_key(&t) || candidates.contains(&t) {
+                        continue;
+                    }
+                    let (r0, r1, c0, c1) = bounds;
+                    let span_r = (r1.max(t.0) - r0.min(t.0) + 1) as usize;
+                    let span_c = (c1.max(t.1) - c0.min(t.1) + 1) as usize;
+                    if span_r > max_lines || span_c > max_lines {
+                        continue;
+                    }
+                    candidates.push(t);
+                }
+            }
+            let mut added = false;
+            for (r, c) in candidates {
+                let n_neighbours = [(0, 1), (0, -1), (1, 0), (-1, 0)]
+                    .iter()
+                    .filter(|(dr, dc)| cells.contains_key(&(r + dr, c + dc)))
+                    .count();
+                // Each cell is tried again only when it has gained neighbours since its last try.
+                if tried.get(&(r, c)).is_some_and(|&n| n >= n_neighbours) {
+                    continue;
+                }
+                tried.insert((r, c), n_neighbours);
+                let Some(p) = predict(cells, r, c) else {
+                    continue;
+                };
+                let (Some(a), Some(b)) =
+                    (step_along(cells, r, c, 0, 1), step_along(cells, r, c, 1, 0))
+                else {
+                    continue;
+                };
+                let fitted = fit(img, p, a, b);
+                let like_grid = |f: &Refined| like_grid(f, grid.0, grid.1);
+                if let Some(f) = fitted.filter(|f| !like_grid(f)) {
+                    tracing::trace!(r, c, ?p, uv = ?f.uv, contrast = f.contrast, residual = f.residual, median_contrast = grid.0, median_residual = grid.1, "recovered corner unlike the grid's");
+                }
+                if let Some(f) = fitted.filter(like_grid) {
+                    shifts.insert((r, c), f.curvature_shift);
+                    shades.insert((r, c), Shade::of(&f));
+                    cells.insert((r, c), Fitted::from_refined(&f));
+                    tracing::trace!(r, c, ?p, uv = ?f.uv, contrast = f.contrast, residual = f.residual, width = f.edge_width, "corner recovered");
+                    recovered += 1;
+                    added = true;
+                }
+            }
+            if !added {
+                break;
+            }
+        }
+        recovered
+    }
+}
+
 fn fit(img: &GrayImage, p: Vector2<f64>, a: Vector2<f64>, b: Vector2<f64>) -> Option<Refined> {
     match refine::refine_near_border(img, p, a, b) {
         Ok(f) => Some(f),
@@ -532,82 +617,34 @@ pub fn complete(img: &GrayImage, corners: &[XCorner], grid: &Grid, max_lines: us
     else {
         return Completed::empty(dropped, 0);
     };
-    let like_grid = |f: &Refined| like_grid(f, median_contrast, median_residual);
-    // Recover missing corners, ring by ring, until nothing changes.
-    let mut tried: BTreeMap<(i32, i32), usize> = BTreeMap::new();
-    let mut recovered = 0;
-    // Then the corners the lattice around them puts elsewhere (captured from a neighbouring
-    // junction, see `drop_off_lattice`) are dropped, and recovered afresh from its prediction.
-    for pass in 0..2 {
-        while let Some(bounds) = bounds(&cells) {
-            let mut candidates: Vec<(i32, i32)> = Vec::new();
-            for &(r, c) in cells.keys() {
-                for (dr, dc) in [(0, 1), (0, -1), (1, 0), (-1, 0)] {
-                    let t = (r + dr, c + dc);
-                    if cells.contains_key(&t) || candidates.contains(&t) {
-                        continue;
-                    }
-                    let (r0, r1, c0, c1) = bounds;
-                    let span_r = (r1.max(t.0) - r0.min(t.0) + 1) as usize;
-                    let span_c = (c1.max(t.1) - c0.min(t.1) + 1) as usize;
-                    if span_r > max_lines || span_c > max_lines {
-                        continue;
-                    }
-                    candidates.push(t);
-                }
-            }
-            let mut added = false;
-            for (r, c) in candidates {
-                let n_neighbours = [(0, 1), (0, -1), (1, 0), (-1, 0)]
-                    .iter()
-                    .filter(|(dr, dc)| cells.contains_key(&(r + dr, c + dc)))
-                    .count();
-                // Each cell is tried again only when it has gained neighbours since its last try.
-                if tried.get(&(r, c)).is_some_and(|&n| n >= n_neighbours) {
-                    continue;
-                }
-                tried.insert((r, c), n_neighbours);
-                let Some(p) = predict(&cells, r, c) else {
-                    continue;
-                };
-                let (Some(a), Some(b)) = (
-                    step_along(&cells, r, c, 0, 1),
-                    step_along(&cells, r, c, 1, 0),
-                ) else {
-                    continue;
-                };
-                let fitted = fit(img, p, a, b);
-                if let Some(f) = fitted.filter(|f| !like_grid(f)) {
-                    tracing::trace!(r, c, ?p, uv = ?f.uv, contrast = f.contrast, residual = f.residual, median_contrast, median_residual, "recovered corner unlike the grid's");
-                }
-                if let Some(f) = fitted.filter(like_grid) {
-                    shifts.insert((r, c), f.curvature_shift);
-                    shades.insert((r, c), Shade::of(&f));
-                    cells.insert((r, c), Fitted::from_refined(&f));
-                    tracing::trace!(r, c, ?p, uv = ?f.uv, contrast = f.contrast, residual = f.residual, width = f.edge_width, "corner recovered");
-                    recovered += 1;
-                    added = true;
-                }
-            }
-            if !added {
-                break;
-            }
-        }
-        if pass == 1 {
-            break;
-        }
-        let off = drop_off_lattice(&mut cells);
-        if off.is_empty() {
-            break;
-        }
+    // Recover missing corners, ring by ring, until nothing changes; then drop the corners the
+    // lattice around them puts elsewhere (captured from a neighbouring junction, see
+    // `drop_off_lattice`) and recover those afresh from its prediction.
+    let mut lattice = Lattice {
+        cells,
+        shifts,
+        shades,
+        tried: BTreeMap::new(),
+    };
+    let grid_levels = (median_contrast, median_residual);
+    let mut recovered = lattice.recover(img, grid_levels, max_lines);
+    let off = drop_off_lattice(&mut lattice.cells);
+    if !off.is_empty() {
         for key in off {
             tracing::debug!(r = key.0, c = key.1, "corner off its lattice: fitted again");
-            shifts.remove(&key);
-            shades.remove(&key);
-            tried.remove(&key);
+            lattice.shifts.remove(&key);
+            lattice.shades.remove(&key);
+            lattice.tried.remove(&key);
             dropped += 1;
         }
+        recovered += lattice.recover(img, grid_levels, max_lines);
     }
+    let Lattice {
+        mut cells,
+        shifts,
+        shades,
+        ..
+    } = lattice;
     // The fits take the edge lines as straight and the levels as constant; correct each corner for
     // the curvature of its lattice lines (estimated from the straight-line fits: the bias they carry
     // varies slowly along a line) and for the shading across its window.

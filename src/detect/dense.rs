@@ -11,7 +11,7 @@ pub(super) struct Dense {
     pub(super) sigma: Vec<f64>,
     /// Each point's covariance (px²).
     pub(super) cov: Vec<Matrix2<f64>>,
-    /// Each point's fitted edge width (px; NaN where unknown).
+    /// Each point's fitted edge width (px; 0 where unknown).
     pub(super) edge: Vec<f64>,
 }
 
